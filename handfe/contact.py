@@ -619,7 +619,7 @@ def _node_values(fun, mesh) -> np.ndarray:
     """Values of a P1 Function at the geometry nodes: (n_nodes, bs)."""
     V = fun.function_space
     bs = V.dofmap.index_map_bs
-    geo = mesh.geometry.dofmap.array.reshape(-1, mesh.geometry.dofmap.num_links(0))
+    geo = mesh.geometry.dofmap.array.reshape(-1, len(mesh.geometry.dofmap.links(0)))
     dofs = V.dofmap.list.array.reshape(geo.shape[0], -1)
     nvert = dofs.shape[1]
     out = np.zeros((mesh.geometry.x.shape[0], bs))
@@ -725,7 +725,7 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
     fdim = mesh.topology.dim - 1
 
     facets = _owned_tagged_facets(mesh, facet_tags, tag)
-    nodes = cpp.mesh.entities_to_geometry(mesh, fdim, facets, False)[:, :3] \
+    nodes = cpp.mesh.entities_to_geometry(mesh._mesh, fdim, facets, False)[:, :3] \
         if facets.size else np.zeros((0, 3), dtype=np.int32)
     if u.function_space.ufl_element().degree() == 1 and u.function_space.num_sub_spaces == 3:
         u1 = u
