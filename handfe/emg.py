@@ -199,8 +199,8 @@ class TimeSeries:
 
     @property
     def fs(self) -> float:
-        """Sampling rate (Hz) from the median sample interval."""
-        return 1.0 / float(np.median(np.diff(self.time)))
+        """Sampling rate (Hz) from the mean sample interval (the grid is checked uniform)."""
+        return (self.time.size - 1) / float(self.time[-1] - self.time[0])
 
     def column(self, name: str, what: str = "column") -> np.ndarray:
         if name not in self.columns:
@@ -340,7 +340,7 @@ def check_sampling_rate(fs: float, band_hz: tuple[float, float], source: str = "
     hi = band_hz[1]
     where = f"{source}: " if source else ""
     if fs <= 2.0 * hi:
-        raise InputError(f"{where}sampling rate {fs:g} Hz is too low for the {hi:g} Hz upper "
+        raise InputError(f"{where}sampling rate {fs:.5g} Hz is too low for the {hi:g} Hz upper "
                          f"band-pass corner: the Nyquist frequency fs/2 = {fs / 2:g} Hz must "
                          f"exceed it (record at > {2 * hi:g} Hz, about 2 kHz is usual, or lower "
                          f"emg.bandpass_hz)")
@@ -405,7 +405,7 @@ def _zero_phase(sos: np.ndarray, x: np.ndarray, fs: float) -> np.ndarray:
 
 def mains_frequency(y: np.ndarray, fs: float, mains_hz: float, search_hz: float = 0.5) -> float:
     """The hum's actual fundamental (Hz) within ``mains_hz +- search_hz``: the frequency that
-    maximises the Hann-windowed DTFT magnitude (0.05 Hz grid, then 0.002 Hz refinement). The DTFT
+    maximises the Hann-windowed DTFT magnitude (0.05 Hz grid, refined to 0.0001 Hz). The DTFT
     is evaluated on the signal demodulated by ``mains_hz`` and averaged in 10 ms blocks (exact
     nulls at the other harmonics), which is cheap and accurate for offsets << 100 Hz."""
     if search_hz <= 0:
@@ -424,6 +424,7 @@ def mains_frequency(y: np.ndarray, fs: float, mains_hz: float, search_hz: float 
 
     d = best(np.arange(-search_hz, search_hz + 1e-9, 0.05))
     d = best(np.arange(d - 0.05, d + 0.05 + 1e-9, 0.002))
+    d = best(np.arange(d - 0.002, d + 0.002 + 1e-9, 0.0001))
     return mains_hz + d
 
 
@@ -445,17 +446,21 @@ def remove_mains_fit(y: np.ndarray, fs: float, mains_hz: float, f_max: float,
 
 
 def filter_emg(x: np.ndarray, fs: float, settings: EmgSettings, source: str = "") -> np.ndarray:
-    """Offset removal, zero-phase band-pass and mains-hum removal of one raw channel."""
+    """Offset removal, mains-hum removal and zero-phase band-pass of one raw channel. The hum fit
+    runs on the raw signal (where the hum is a clean stationary sinusoid), the notch after the
+    band-pass."""
     y = np.asarray(x, dtype=float) - float(np.median(x))
+    f_max = settings.bandpass_hz[1]
+    hum = settings.mains_hz > 0
+    if hum and settings.mains_method == "fit":
+        y = remove_mains_fit(y, fs, settings.mains_hz, f_max, settings.mains_search_hz)
     sos = bandpass_sos(fs, settings.bandpass_hz, settings.bandpass_order, source)
     y = _zero_phase(sos, y, fs)
-    if settings.mains_hz <= 0:
-        return y
-    f_max = settings.bandpass_hz[1]
-    if settings.mains_method == "fit":
-        return remove_mains_fit(y, fs, settings.mains_hz, f_max, settings.mains_search_hz)
-    notch = notch_sos(fs, settings.mains_hz, settings.notch_q, f_max)
-    return y if notch is None else _zero_phase(notch, y, fs)
+    if hum and settings.mains_method == "notch":
+        notch = notch_sos(fs, settings.mains_hz, settings.notch_q, f_max)
+        if notch is not None:
+            y = _zero_phase(notch, y, fs)
+    return y
 
 
 def envelope(filtered: np.ndarray, fs: float, settings: EmgSettings) -> np.ndarray:
