@@ -615,7 +615,7 @@ def trial_hold_window(subject: Subject, spec: TrialSpec, settings: EmgSettings,
     detected in the sum of the muscles' envelopes (each scaled by its 99th percentile)."""
     if settings.hold == "window" and spec.hold_s is not None:
         return spec.hold_s
-    if settings.hold == "window" and not spec.emg:
+    if not spec.emg:
         raise InputError(f"{subject.trials_file}: trial {spec.trial} has no hold_s and no EMG "
                          "file to detect a hold in")
     path = subject.path(spec.emg)
@@ -635,7 +635,7 @@ def trial_hold_window(subject: Subject, spec: TrialSpec, settings: EmgSettings,
         raise InputError(f"{path}: no steady hold of >= {settings.min_hold_s:g} s detected; "
                          "give hold_s for this trial in trials.toml")
     a, b = max(holds, key=lambda h: h[1] - h[0])
-    return (float(t[0] + a), float(t[0] + b))
+    return (round(float(t[0] + a), 4), round(float(t[0] + b), 4))
 
 
 def process_trial(subject: Subject, spec: TrialSpec, settings: EmgSettings,

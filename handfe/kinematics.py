@@ -291,11 +291,10 @@ def grasp_angles(subject_dir: str | Path, grasp: str, *, trial: int | None = Non
                              "'glove' file")
         path = subject.path(spec.glove)
         t, ang = glove_angles(path, settings, cal)
-        if spec.hold_s is not None:
-            hold = spec.hold_s
-        else:  # same clock as the EMG: use its detected hold
-            emg_settings = emg_settings or subject.emg_settings(hold="detect")
-            hold = trial_hold_window(subject, spec, emg_settings)
+        # the trial's hold_s, or (no hold_s, or [emg] hold = "detect") the hold detected in
+        # the trial's EMG, which shares the glove's clock
+        emg_settings = emg_settings or subject.emg_settings()
+        hold = trial_hold_window(subject, spec, emg_settings)
         sel = (t >= hold[0]) & (t <= hold[1])
         if sel.sum() < 1:
             raise InputError(f"{path}: hold window {hold[0]:g}-{hold[1]:g} s lies outside the "
