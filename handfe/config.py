@@ -63,7 +63,8 @@ def from_dict(cls: type[T], data: Mapping[str, Any], *, source: str = "<dict>",
     unknown = sorted(set(data) - set(fields))
     if unknown:
         key = f"{prefix}{unknown[0]}"
-        raise ConfigError(f"{source}: unknown key '{key}' (allowed here: {', '.join(sorted(fields))})")
+        allowed = ", ".join(sorted(fields))
+        raise ConfigError(f"{source}: unknown key '{key}' (allowed here: {allowed})")
     kwargs: dict[str, Any] = {}
     for name, f in fields.items():
         key = f"{prefix}{name}"
@@ -143,7 +144,8 @@ def _convert(tp: Any, value: Any, *, source: str, key: str) -> Any:
 def _check_meta(f: dataclasses.Field, value: Any, *, source: str, key: str) -> None:
     meta = f.metadata
     if "choices" in meta and value not in meta["choices"]:
-        raise ConfigError(f"{source}: '{key}' = {value!r}: must be one of {', '.join(meta['choices'])}")
+        allowed = ", ".join(meta["choices"])
+        raise ConfigError(f"{source}: '{key}' = {value!r}: must be one of {allowed}")
     if "bounds" in meta and value is not None:
         lo, hi, lo_open, hi_open = meta["bounds"]
         vals = value if isinstance(value, list | tuple) else [value]

@@ -1,0 +1,477 @@
+"""Static large-deformation equilibrium of hyperelastic tissue (units: mm, N, MPa).
+
+* :class:`HyperelasticProblem` builds the weak form on a dolfinx mesh. Near-incompressible tissue
+  uses the mixed displacement-pressure ("hybrid") form with Taylor-Hood P2-P1 elements, which
+  does not lock (see ``tests/test_locking.py``); ``p2``/``p1`` displacement elements are kept for
+  comparison and for laws without a volumetric split.
+* :func:`solve` drives the load factor t from 0 to 1 with automatic step cutting on Newton
+  failure and step growth after easy steps. Each step is a PETSc SNES ``newtonls`` solve with a
+  backtracking line search, MUMPS LU by default; any PETSc option can be passed through (e.g. an
+  iterative solver for large meshes). An optional ``augment`` callback runs Uzawa updates
+  (augmented-Lagrangian contact) after each converged Newton solve.
+* The result is a :class:`SolveResult`; if a step cannot converge after the allowed cuts a
+  :class:`~handfe.errors.SolverError` names the load step, the load factor and the last residual.
+  Per-step callbacks (``on_step``) run after every accepted step, so whatever they wrote stays.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx.fem import petsc as fem_petsc
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from handfe.errors import InputError, SolverError
+from handfe.materials import BoundMaterial, Material
+
+ELEMENTS = ("taylor-hood", "p2", "p1")
+_prefix_counter = itertools.count()
+
+
+@dataclass(frozen=True)
+class Discretisation:
+    """Element choice and quadrature degree.
+
+    ``taylor-hood``: P2 displacement + P1 pressure (default; locking-free for nu -> 0.5);
+    ``p2`` / ``p1``: displacement only. The quadrature degree must be set by hand: UFL's estimate
+    for Ogden forms is ~190 and makes assembly many times slower than the linear solve. Default 4
+    for quadratic displacement, 2 for linear (verified by the convergence tests)."""
+
+    element: str = "taylor-hood"
+    quadrature_degree: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.element not in ELEMENTS:
+            raise InputError(f"unknown element '{self.element}' (choose from "
+                             f"{', '.join(ELEMENTS)})")
+        if self.quadrature_degree is not None and not 1 <= self.quadrature_degree <= 12:
+            raise InputError(f"quadrature_degree = {self.quadrature_degree} must be in 1..12")
+
+    @property
+    def mixed(self) -> bool:
+        return self.element == "taylor-hood"
+
+    @property
+    def degree(self) -> int:
+        return 1 if self.element == "p1" else 2
+
+    @property
+    def qdeg(self) -> int:
+        return self.quadrature_degree or (4 if self.degree == 2 else 2)
+
+
+class VectorConstant:
+    """Three scalar ``fem.Constant`` set together (``.value = (x, y, z)``), usable as UFL via
+    :attr:`ufl`."""
+
+    def __init__(self, mesh, value=(0.0, 0.0, 0.0)):
+        self.components = [fem.Constant(mesh, PETSc.ScalarType(0.0)) for _ in range(3)]
+        self.value = value
+
+    @property
+    def value(self) -> np.ndarray:
+        return np.array([float(c.value) for c in self.components])
+
+    @value.setter
+    def value(self, v) -> None:
+        v = np.asarray(v, dtype=float).reshape(3)
+        for c, x in zip(self.components, v, strict=True):
+            c.value = x
+
+    @property
+    def ufl(self):
+        return ufl.as_vector(self.components)
+
+
+class HyperelasticProblem:
+    """Weak form of hyperelastic equilibrium on ``mesh``.
+
+    ``material`` is one :class:`~handfe.materials.Material` for the whole mesh or a mapping from
+    cell tag to material (with ``cell_tags``). Parameters are bound as ``fem.Constant`` (see
+    :meth:`assign_material`) so changing them does not recompile. Extra residual terms (tractions,
+    contact) are added with :meth:`add_residual` before the first solve; Dirichlet conditions
+    with :meth:`fix`. Residual sign: R(u; v) = int P : grad v dX - external work = 0.
+    """
+
+    def __init__(self, mesh, material: Material | Mapping[int, Material], *, cell_tags=None,
+                 disc: Discretisation | None = None, incompressible: bool = False):
+        self.mesh = mesh
+        self.comm: MPI.Comm = mesh.comm
+        self.disc = disc or Discretisation()
+        self.incompressible = incompressible
+        if incompressible and not self.disc.mixed:
+            raise InputError("incompressible=True needs the mixed taylor-hood element")
+        mats = {None: material} if isinstance(material, Material) else dict(material)
+        if len(mats) > 1 and cell_tags is None:
+            raise InputError("several materials need cell_tags")
+        cell = mesh.ufl_cell()
+        Ve = ufl.VectorElement("CG", cell, self.disc.degree)
+        if self.disc.mixed:
+            Qe = ufl.FiniteElement("CG", cell, 1)
+            self.W = fem.FunctionSpace(mesh, ufl.MixedElement([Ve, Qe]))
+        else:
+            self.W = fem.FunctionSpace(mesh, Ve)
+        self.w = fem.Function(self.W, name="state")
+        self.v = ufl.TestFunction(self.W)
+        if self.disc.mixed:
+            self.u, self.p = ufl.split(self.w)
+            self.vu = ufl.split(self.v)[0]
+        else:
+            self.u, self.p = self.w, None
+            self.vu = self.v
+        self.dx = ufl.Measure("dx", domain=mesh, subdomain_data=cell_tags,
+                              metadata={"quadrature_degree": self.disc.qdeg})
+        self.ds_metadata = {"quadrature_degree": self.disc.qdeg}
+        self.F = ufl.variable(ufl.Identity(3) + ufl.grad(self.u))
+        self.bound: dict[int | None, BoundMaterial] = {}
+        energy = 0
+        for tag, mat in mats.items():
+            bm = BoundMaterial(mat, mesh, incompressible=incompressible)
+            self.bound[tag] = bm
+            dxt = self.dx if tag is None else self.dx(tag)
+            if self.disc.mixed and mat.supports_mixed:
+                energy += bm.mixed_energy(self.F, self.p) * dxt
+            elif self.disc.mixed:
+                # no volumetric split: pressure is not used here, pin it to zero in these cells
+                energy += (bm.strain_energy(self.F) - 0.5 * self.p * self.p) * dxt
+            else:
+                energy += bm.strain_energy(self.F) * dxt
+        self.energy = energy
+        self.internal_residual = ufl.derivative(energy, self.w, self.v)
+        self.extra_residual: list[Any] = []
+        self.bcs: list[fem.DirichletBCMetaClass] = []
+        self._compiled: tuple | None = None
+
+    # -- set-up ---------------------------------------------------------------------------------
+    @property
+    def displacement_space(self):
+        return self.W.sub(0) if self.disc.mixed else self.W
+
+    def add_residual(self, form) -> None:
+        """Add a residual contribution (UFL 1-form in ``self.v``); before the first solve."""
+        if self._compiled is not None:
+            raise RuntimeError("add_residual after the forms were compiled")
+        self.extra_residual.append(form)
+
+    def fix(self, facets: np.ndarray, value=None, components: tuple[int, ...] | None = None):
+        """Dirichlet condition on the displacement at ``facets``: all components to ``value``
+        (a length-3 sequence or fem.Constant, default 0) or only the listed ``components`` (each
+        set to a scalar; ``value`` a scalar or fem.Constant). Returns the :class:`VectorConstant`
+        or fem.Constant, which can be changed between load steps without recompiling."""
+        fdim = self.mesh.topology.dim - 1
+        Vu = self.displacement_space
+        if components is None:
+            # dolfinx 0.5 accepts no vector Constant on a mixed sub-space: one scalar per component
+            vec = value if isinstance(value, VectorConstant) else VectorConstant(
+                self.mesh, np.zeros(3) if value is None else value)
+            for i in range(3):
+                dofs = fem.locate_dofs_topological(Vu.sub(i), fdim, facets)
+                self.bcs.append(fem.dirichletbc(vec.components[i], dofs, Vu.sub(i)))
+            return vec
+        c = value if isinstance(value, fem.Constant) else fem.Constant(
+            self.mesh, PETSc.ScalarType(0.0 if value is None else value))
+        for i in components:
+            dofs = fem.locate_dofs_topological(Vu.sub(i), fdim, facets)
+            self.bcs.append(fem.dirichletbc(c, dofs, Vu.sub(i)))
+        return c
+
+    def assign_material(self, material: Material, tag: int | None = None) -> None:
+        """Change a bound material's parameter values (no recompilation)."""
+        self.bound[tag].assign(material)
+
+    # -- forms ----------------------------------------------------------------------------------
+    @property
+    def residual(self):
+        return self.internal_residual + sum(self.extra_residual) if self.extra_residual \
+            else self.internal_residual
+
+    def compiled(self):
+        """(residual form, Jacobian form), compiled once."""
+        if self._compiled is None:
+            R = self.residual
+            J = ufl.derivative(R, self.w, ufl.TrialFunction(self.W))
+            self._compiled = (fem.form(R), fem.form(J))
+        return self._compiled
+
+    def first_piola(self, tag: int | None = None):
+        """Nominal stress tensor P (MPa), UFL, for the material of ``tag``."""
+        bm = self.bound[tag]
+        if self.disc.mixed and bm.material.supports_mixed:
+            return bm.first_piola(self.F, self.p)
+        return bm.first_piola(self.F)
+
+    def num_dofs(self) -> int:
+        im = self.W.dofmap.index_map
+        return im.size_global * self.W.dofmap.index_map_bs
+
+    def displacement(self) -> fem.Function:
+        """The displacement as a collapsed Function (mm), for output."""
+        if self.disc.mixed:
+            return self.w.sub(0).collapse()
+        return self.w
+
+    def reaction(self, facets: np.ndarray) -> np.ndarray:
+        """Consistent reaction force (N) on the displacement dofs of ``facets``: the sum of the
+        internal residual over those dofs (force the support exerts on the body), reduced over
+        ranks (owned dofs only)."""
+        L = fem.form(self.internal_residual)
+        b = fem_petsc.assemble_vector(L)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fdim = self.mesh.topology.dim - 1
+        Vu = self.displacement_space
+        n_owned = self.W.dofmap.index_map.size_local * self.W.dofmap.index_map_bs
+        arr = b.getArray(readonly=True)
+        out = np.zeros(3)
+        for i in range(3):
+            dofs = fem.locate_dofs_topological(Vu.sub(i), fdim, facets)
+            dofs = dofs[dofs < n_owned]
+            out[i] = arr[dofs].sum()
+        b.destroy()
+        return np.array([self.comm.allreduce(x, op=MPI.SUM) for x in out])
+
+
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class NewtonOptions:
+    """Newton (PETSc SNES) settings. Converged when ||R|| <= max(atol, rtol ||R_0||).
+    ``petsc_options`` are passed through (keys without prefix, e.g. {"ksp_type": "gmres",
+    "pc_type": "gamg"}) and override the defaults (direct MUMPS LU)."""
+
+    rtol: float = 1e-9
+    atol: float = 1e-10
+    max_it: int = 25
+    linesearch: str = "bt"
+    linear_solver: str = "mumps"
+    petsc_options: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class LoadStepping:
+    """Load-factor stepping on [0, 1]: start with ``initial`` (fraction of the full load), halve
+    on failure down to ``min_step``, grow by ``grow`` after a step that took <= ``easy_iterations``
+    Newton iterations, never above ``max_step``. ``extrapolate``: linear predictor from the last
+    two converged states (retried without it on failure)."""
+
+    initial: float = 0.25
+    min_step: float = 1.0 / 1024
+    max_step: float = 1.0
+    grow: float = 1.5
+    easy_iterations: int = 6
+    extrapolate: bool = True
+    max_augment: int = 20
+
+    def __post_init__(self) -> None:
+        if not 0 < self.min_step <= self.initial <= self.max_step <= 1.0:
+            raise InputError("load stepping needs 0 < min_step <= initial <= max_step <= 1, got "
+                             f"{self.min_step}, {self.initial}, {self.max_step}")
+
+
+@dataclass
+class SolveResult:
+    """What a solve did. Lists have one entry per accepted load step."""
+
+    converged: bool = False
+    load_factors: list[float] = field(default_factory=list)
+    newton_iterations: list[int] = field(default_factory=list)
+    residual_history: list[list[float]] = field(default_factory=list)
+    augment_iterations: list[int] = field(default_factory=list)
+    cuts: int = 0
+    wall_s: float = 0.0
+    dofs: int = 0
+
+    @property
+    def load_steps(self) -> int:
+        return len(self.load_factors)
+
+    @property
+    def total_newton_iterations(self) -> int:
+        return int(sum(self.newton_iterations))
+
+    def summary(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.pop("residual_history")
+        d["load_steps"] = self.load_steps
+        d["total_newton_iterations"] = self.total_newton_iterations
+        return d
+
+
+_REASONS = {v: k for k, v in vars(PETSc.SNES.ConvergedReason).items() if not k.startswith("_")}
+
+
+class NewtonSolver:
+    """A SNES newtonls solver bound to a :class:`HyperelasticProblem`."""
+
+    def __init__(self, problem: HyperelasticProblem, options: NewtonOptions | None = None):
+        self.problem = problem
+        self.options = opts = options or NewtonOptions()
+        L, a = problem.compiled()
+        self._L, self._a = L, a
+        self.b = fem_petsc.create_vector(L)
+        self.A = fem_petsc.create_matrix(a)
+        self.x = self.b.duplicate()
+        self.snes = PETSc.SNES().create(problem.comm)
+        self.prefix = f"handfe_{next(_prefix_counter)}_"
+        self.snes.setOptionsPrefix(self.prefix)
+        db = PETSc.Options()
+        defaults = {"snes_type": "newtonls", "snes_linesearch_type": opts.linesearch,
+                    "ksp_type": "preonly", "pc_type": "lu",
+                    "pc_factor_mat_solver_type": opts.linear_solver,
+                    "mat_mumps_icntl_14": 200}
+        defaults.update(opts.petsc_options)
+        for k, v in defaults.items():
+            db[self.prefix + k] = v
+        self.snes.setFunction(self._residual, self.b)
+        self.snes.setJacobian(self._jacobian, self.A)
+        self.snes.setTolerances(rtol=opts.rtol, atol=opts.atol, stol=1e-14, max_it=opts.max_it)
+        self.snes.setFromOptions()
+        for k in defaults:
+            db.delValue(self.prefix + k)
+        self.history: list[float] = []
+        self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
+
+    def _residual(self, snes, x, b):
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        x.copy(self.problem.w.vector)
+        self.problem.w.x.scatter_forward()
+        with b.localForm() as bl:
+            bl.set(0.0)
+        fem_petsc.assemble_vector(b, self._L)
+        fem_petsc.apply_lifting(b, [self._a], bcs=[self.problem.bcs], x0=[x], scale=-1.0)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem_petsc.set_bc(b, self.problem.bcs, x, -1.0)
+
+    def _jacobian(self, snes, x, A, P):
+        A.zeroEntries()
+        fem_petsc.assemble_matrix(A, self._a, bcs=self.problem.bcs)
+        A.assemble()
+
+    def solve(self) -> tuple[bool, int, list[float], str]:
+        """Newton from the current state of ``problem.w``. Returns (converged, iterations,
+        residual history, reason)."""
+        self.history = []
+        self.problem.w.vector.copy(self.x)
+        try:
+            self.snes.solve(None, self.x)
+        except PETSc.Error as exc:  # e.g. a factorisation failure
+            return False, self.snes.getIterationNumber(), self.history, f"PETSc error {exc}"
+        reason = self.snes.getConvergedReason()
+        self.x.copy(self.problem.w.vector)
+        self.problem.w.x.scatter_forward()
+        ok = reason > 0 and all(np.isfinite(self.history))
+        return ok, self.snes.getIterationNumber(), list(self.history), _REASONS.get(reason,
+                                                                                  str(reason))
+
+    def destroy(self) -> None:
+        for obj in (self.snes, self.A, self.b, self.x):
+            obj.destroy()
+
+
+def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
+          newton: NewtonOptions | None = None, stepping: LoadStepping | None = None,
+          on_step: Callable[[float, SolveResult], None] | None = None,
+          augment: Callable[[], tuple[bool, float]] | None = None,
+          progress: Callable[[str], None] | None = None) -> SolveResult:
+    """Drive the load factor t from 0 to 1.
+
+    ``set_load(t)`` updates the load (fem.Constant values of Dirichlet data, tractions, obstacle
+    positions) for factor t. ``augment()`` (optional) is called after each converged Newton solve;
+    it updates multipliers and returns (done, violation); Newton is repeated until done (at most
+    ``stepping.max_augment`` times). ``on_step(t, result)`` runs after each accepted step.
+    Raises :class:`SolverError` if a step fails after cutting to ``stepping.min_step``.
+    """
+    stepping = stepping or LoadStepping()
+    res = SolveResult(dofs=problem.num_dofs())
+    t0 = time.perf_counter()
+    solver = NewtonSolver(problem, newton)
+    w = problem.w
+    prev = w.vector.copy()  # last converged state
+    prev2 = None  # the one before, for the predictor
+    t, dt, dt_prev = 0.0, stepping.initial, None
+    step = 0
+    try:
+        while t < 1.0 - 1e-12:
+            step += 1
+            dt = min(dt, 1.0 - t, stepping.max_step)
+            cuts_here = 0
+            while True:
+                t_new = t + dt
+                set_load(t_new)
+                tried_pred = False
+                if stepping.extrapolate and prev2 is not None and dt_prev:
+                    # w = prev + dt/dt_prev (prev - prev2)
+                    prev.copy(w.vector)
+                    w.vector.axpy(dt / dt_prev, prev)
+                    w.vector.axpy(-dt / dt_prev, prev2)
+                    w.x.scatter_forward()
+                    tried_pred = True
+                ok, its, hist, reason = solver.solve()
+                if not ok and tried_pred:
+                    prev.copy(w.vector)
+                    w.x.scatter_forward()
+                    ok, its2, hist2, reason = solver.solve()
+                    its, hist = its + its2, hist + hist2
+                n_aug = 0
+                while ok and augment is not None:
+                    done, violation = augment()
+                    if done:
+                        break
+                    n_aug += 1
+                    if n_aug > stepping.max_augment:
+                        ok, reason = False, (f"augmented Lagrangian not converged after "
+                                             f"{stepping.max_augment} updates (violation "
+                                             f"{violation:.3g})")
+                        break
+                    ok, its2, hist2, reason = solver.solve()
+                    its, hist = its + its2, hist + hist2
+                if ok:
+                    break
+                # failure: restore, cut
+                prev.copy(w.vector)
+                w.x.scatter_forward()
+                last = hist[-1] if hist else float("nan")
+                if dt / 2 < stepping.min_step * (1 - 1e-12):
+                    set_load(t)
+                    raise SolverError(
+                        f"load step {step} (load factor {t:.4g} -> {t_new:.4g}) did not converge "
+                        f"after {cuts_here} step cuts (smallest step {dt:.3g}): {reason}, last "
+                        f"residual {last:.3e}", load_step=step, load_factor=t_new, residual=last)
+                dt /= 2
+                cuts_here += 1
+                res.cuts += 1
+                if progress:
+                    progress(f"  step {step}: {reason} (residual {last:.2e}); cutting to "
+                             f"dt = {dt:.4g}")
+            if prev2 is None:
+                prev2 = prev.duplicate()
+            prev.copy(prev2)
+            w.vector.copy(prev)
+            dt_prev = dt
+            t = t_new
+            res.load_factors.append(t)
+            res.newton_iterations.append(int(its))
+            res.residual_history.append(hist)
+            res.augment_iterations.append(n_aug)
+            if progress:
+                progress(f"  step {step}: t = {t:.4f}, {its} Newton iterations"
+                         + (f", {n_aug} Uzawa updates" if augment else "")
+                         + f", |R| = {hist[-1] if hist else 0.0:.2e}")
+            if on_step:
+                on_step(t, res)
+            if its <= stepping.easy_iterations and cuts_here == 0:
+                dt = min(dt * stepping.grow, stepping.max_step)
+        res.converged = True
+    finally:
+        res.wall_s = time.perf_counter() - t0
+        solver.destroy()
+        prev.destroy()
+        if prev2 is not None:
+            prev2.destroy()
+    return res
