@@ -463,9 +463,12 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
     gmsh.option.setNumber("Mesh.MeshSizeMax", h)
     gmsh.option.setNumber("Mesh.Algorithm", 6)
-    gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+    gmsh.option.setNumber("Mesh.Algorithm3D", 1)  # Delaunay: deterministic (HXT is not)
+    gmsh.option.setNumber("General.NumThreads", 1)  # deterministic mesh
     gmsh.option.setNumber("Mesh.Optimize", 1)
+    gmsh.option.setNumber("Mesh.OptimizeThreshold", 0.5)
     gmsh.model.mesh.generate(3)
+    gmsh.model.mesh.optimize("", force=False, niter=3)
     return {**groups, **fgroups}
 
 
