@@ -158,6 +158,14 @@ def _ufl():
     return ufl
 
 
+def extract_unique_domain(u):
+    """The UFL domain of ``u``: works for Functions and for components of a mixed Function
+    (``ufl.split``), which have no function space of their own."""
+    from ufl.domain import extract_unique_domain as _extract
+
+    return _extract(u)
+
+
 def _u_vec(v: Vec3):
     return _ufl().as_vector([float(c) for c in v])
 
@@ -483,7 +491,7 @@ def deformed_area_factor(u):
     ufl = _ufl()
     dim = len(u)
     F = ufl.Identity(dim) + ufl.grad(u)
-    N = ufl.FacetNormal(u.ufl_function_space().mesh)
+    N = ufl.FacetNormal(extract_unique_domain(u))
     cof = ufl.det(F) * ufl.inv(F).T * N
     return ufl.sqrt(ufl.dot(cof, cof))
 
@@ -502,7 +510,7 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
     displacement at the stick anchor (previous converged step for incremental friction);
     translation_ref: Constant, the obstacle translation at the anchor."""
     ufl = _ufl()
-    X = ufl.SpatialCoordinate(u.ufl_function_space().mesh)
+    X = ufl.SpatialCoordinate(extract_unique_domain(u))
     x = X + u
     g, n = obstacle.ufl_gap_normal(x, translation)
     lam = 0.0 if lambda_n is None else lambda_n
@@ -589,7 +597,10 @@ class ContactMetrics:
     """Contact outputs of one tagged surface region (see :func:`contact_metrics`).
 
     Forces in N, area in mm^2, pressures in kPa, lengths in mm. Quantities that need the
-    pressure are NaN when no pressure was given; centroid is NaN when the area is 0."""
+    pressure are NaN when no pressure was given; centroid is NaN when the area is 0.
+    min_gap_mm: smallest gap at the region's deformed vertices (negative = penetration; at
+    u = 0 it is the plate travel to first contact); max_penetration_mm = max(0, -min_gap_mm).
+    length_mm/width_mm: extent of the patch along the first/second axis."""
 
     normal_force_N: float
     tangential_force_N: float
@@ -602,6 +613,7 @@ class ContactMetrics:
     max_penetration_mm: float
     force_vector_N: tuple[float, float, float]
     gap_tol_mm: float
+    min_gap_mm: float = float("nan")
 
     def as_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items()}
@@ -741,7 +753,8 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
     lo = np.array([comm.allreduce(float(c), op=MPI.MIN) for c in lo])
     hi = np.array([comm.allreduce(float(c), op=MPI.MAX) for c in hi])
     ext = np.where(hi >= lo, hi - lo, 0.0)
-    pen = comm.allreduce(float(np.max(-g, initial=0.0)), op=MPI.MAX)
+    gmin = comm.allreduce(float(np.min(g, initial=np.inf)), op=MPI.MIN)
+    pen = max(0.0, -gmin) if np.isfinite(gmin) else 0.0
     centroid = tuple(float(c) for c in (mom / area if area > 0 else np.full(3, np.nan)))
 
     nan = float("nan")
@@ -776,5 +789,6 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
     return ContactMetrics(normal_force_N=fn, tangential_force_N=ft, contact_area_mm2=area,
                           mean_pressure_kPa=pmean, peak_pressure_kPa=ppeak,
                           centroid_mm=centroid, length_mm=float(ext[0]),
-                          width_mm=float(ext[1]), max_penetration_mm=max(0.0, pen),
-                          force_vector_N=fvec, gap_tol_mm=tol)
+                          width_mm=float(ext[1]), max_penetration_mm=pen,
+                          force_vector_N=fvec, gap_tol_mm=tol,
+                          min_gap_mm=gmin if np.isfinite(gmin) else float("nan"))

@@ -62,6 +62,7 @@ def _check(m, ref):
     assert m.width_mm == pytest.approx(ref["width"], rel=1e-12)
     np.testing.assert_allclose(m.centroid_mm, ref["centroid"], rtol=1e-12)
     assert m.max_penetration_mm == pytest.approx(ref["pen"], rel=1e-12)
+    assert m.min_gap_mm == pytest.approx(-ref["pen"], rel=1e-12)
     assert m.normal_force_N == pytest.approx(ref["force"], rel=1e-10)
     np.testing.assert_allclose(m.force_vector_N, [0.0, 0.0, -ref["force"]], atol=1e-12)
     assert m.mean_pressure_kPa == pytest.approx(ref["mean_kPa"], rel=1e-10)
@@ -107,6 +108,7 @@ def test_area_continuous_in_plate_position():
     assert np.all(np.abs(dA) <= jac * (cs[1] - cs[0]) / S * (1 + 1e-9))
     m = contact_metrics(u, plate, (0, 0, 0.5), ft, 7, comm=MPI.COMM_SELF)
     assert m.contact_area_mm2 == 0.0 and np.isnan(m.normal_force_N)
+    assert m.min_gap_mm == pytest.approx(0.5 - 0.1, rel=1e-12)  # plate at 1.5, top at most 1.1
     assert m.length_mm == 0.0 and np.all(np.isnan(m.centroid_mm))
 
 

@@ -178,3 +178,35 @@ def test_mpi_same_mesh_as_serial(fm):
     assert serial.cells_per_tag == fm.cells_per_tag
     for name in ("pulp", "nail"):
         assert _cell_volumes(fm, name) == pytest.approx(_cell_volumes(serial, name), rel=1e-12)
+
+
+@pytest.mark.mpi
+def test_plate_first_contact_on_pad(fm, geom):
+    """contact_metrics on the fingertip with a P2 displacement (zero): the gap of a 15 deg
+    plate to the pad equals the first-contact distance of the exact bi-ellipsoid (densely
+    sampled) within the chord error; pushing it 1 mm further gives a patch on the pad."""
+    from dolfinx import fem
+
+    from handfe.contact import contact_metrics, plate
+
+    g = geom
+    ob = plate(15.0, point=(0.0, 0.0, -20.0))
+    n = np.asarray(ob.normal)
+    # exact: min over the palmar surface of (x - p0) . n
+    th, ph = np.meshgrid(np.linspace(0, np.pi / 2, 801), np.linspace(0, np.pi, 801))
+    cap = np.stack([g.proximal_length_mm + g.tip_length_mm * np.sin(th) * np.ones_like(ph),
+                    g.half_width_mm * np.cos(th) * np.cos(ph),
+                    -g.palmar_depth_mm * np.cos(th) * np.sin(ph)], axis=-1).reshape(-1, 3)
+    exact = float(np.min(ob.gap_normal(cap)[0]))
+    u = fem.Function(fem.VectorFunctionSpace(fm.mesh, ("CG", 2)))
+    comm = fm.mesh.comm
+    m0 = contact_metrics(u, ob, (0, 0, 0), fm.facet_tags, fm.tags["pad"], comm=comm)
+    assert m0.min_gap_mm == pytest.approx(exact, abs=0.1)
+    assert m0.contact_area_mm2 == 0.0
+    m1 = contact_metrics(u, ob, tuple((m0.min_gap_mm + 1.0) * n), fm.facet_tags,
+                         fm.tags["pad"], comm=comm,
+                         axes=((np.cos(np.radians(15)), 0, np.sin(np.radians(15))), (0, 1, 0)))
+    assert m1.max_penetration_mm == pytest.approx(1.0, abs=1e-9)
+    assert 10.0 < m1.contact_area_mm2 < 200.0
+    assert m1.length_mm > 0 and m1.width_mm > 0
+    assert abs(m1.centroid_mm[1]) < 0.2 * m1.width_mm  # symmetric across the finger
