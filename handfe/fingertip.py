@@ -25,7 +25,7 @@ default)
   is the shortest half ellipsoid that keeps the bone at least ``nail_thickness + 0.3 mm``
   below the dorsal surface. Measured from the bone tip in the sagittal plane (0 deg =
   palmar, 90 deg = distal) the model's pulp thicknesses are ``DN0_model_mm``,
-  ``DN45_model_mm``, ``DN90_model_mm`` (mean subject: 6.02 / 3.85 / 2.30 mm vs 6.4 / 3.3 /
+  ``DN45_model_mm``, ``DN90_model_mm`` (mean subject: 6.02 / 3.84 / 2.30 mm vs 6.4 / 3.3 /
   2.3 measured: the two-ellipse outline is more pointed than a real tip). ``beta_deg`` is
   carried along but not used (the bone is kept parallel to the finger axis).
 * Nail: a separate volume, the outer ``nail_thickness_mm`` (default 0.5) of the dorsal shell
