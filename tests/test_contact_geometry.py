@@ -162,3 +162,16 @@ def test_ufl_guard_at_singular_points():
     c = Cylinder(axis=(0, 0, 1), radius=1.0, half_length=3.0, edge_radius=0.2)
     g, n = c.gap_normal(np.zeros((1, 3)))
     assert g[0] == pytest.approx(-1.0) and np.linalg.norm(n[0]) == pytest.approx(1.0)
+
+
+def test_friction_anchor_update():
+    """Stuck nodes keep their anchor; slipped nodes keep exactly the Coulomb limit."""
+    from handfe.contact import friction_anchor_update
+
+    s = np.array([[1e-4, 0, 0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.0]])
+    p = np.array([0.1, 0.1, 0.0])
+    shift = friction_anchor_update(s, p, mu=0.5, k_t=10.0)
+    np.testing.assert_allclose(shift[0], 0.0, atol=1e-15)  # k_t |s| = 1e-3 <= mu p = 0.05
+    left = s[1] - shift[1]
+    assert 10.0 * np.linalg.norm(left) == pytest.approx(0.5 * 0.1)
+    np.testing.assert_allclose(shift[2], 0.0, atol=1e-15)
