@@ -210,3 +210,13 @@ def test_plate_first_contact_on_pad(fm, geom):
     assert 10.0 < m1.contact_area_mm2 < 200.0
     assert m1.length_mm > 0 and m1.width_mm > 0
     assert abs(m1.centroid_mm[1]) < 0.2 * m1.width_mm  # symmetric across the finger
+
+
+def test_thin_subject_s3_meshes():
+    """S3 has only 0.6 mm over the bone: the nail is thinned to fit and the mesh is built."""
+    g = fingertip_geometry("S3")
+    assert g.nail_thickness_mm == pytest.approx(0.3)
+    m = build_fingertip_mesh(g, level="reduced", comm=MPI.COMM_SELF)
+    assert m.cells_per_tag["nail"] > 0 and m.cells_per_tag["pulp"] > 0
+    assert _cell_volumes(m, "pulp") + _cell_volumes(m, "nail") == pytest.approx(
+        g.outer_volume_mm3() - g.bone_volume_mm3(), rel=0.03)
