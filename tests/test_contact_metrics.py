@@ -180,3 +180,40 @@ def test_uzawa_update():
     np.testing.assert_allclose(lam.x.array, expect, atol=1e-14)
     change2, _ = update()  # second update: lambda grows by k * penetration again
     assert change2 == pytest.approx(K * (S * 0.5 - C), rel=1e-12)
+
+
+def test_contact_jacobian_matches_finite_differences():
+    """ufl.derivative of the residual (normal + friction, Nanson factor) is finite and
+    equals the central finite difference of the residual in a random direction."""
+    import ufl
+    from dolfinx import fem
+    from dolfinx.fem.petsc import assemble_matrix, assemble_vector
+
+    msh, ft, u, plate, tr, _ = _setup(MPI.COMM_SELF)
+    V = u.function_space
+    v = ufl.TestFunction(V)
+    ds = ufl.Measure("ds", domain=msh, subdomain_data=ft, metadata={"quadrature_degree": 2})
+    u_ref = fem.Function(V)
+    u_ref.interpolate(lambda x: np.vstack([A * x[0] - 2e-3 * x[1], B * x[1], S * (x[0] - 0.5)]))
+    lam = fem.Function(fem.FunctionSpace(msh, ("CG", 1)))
+    lam.x.array[:] = 0.01
+    terms = ufl_contact_terms(u, v, plate, tr, ds(7), k_n=fem.Constant(msh, K), lambda_n=lam,
+                              mu=fem.Constant(msh, 0.74), k_t=fem.Constant(msh, 1.0),
+                              u_ref=u_ref, translation_ref=fem.Constant(msh, np.zeros(3)))
+    F = fem.form(terms.residual)
+    J = assemble_matrix(fem.form(ufl.derivative(terms.residual, u)))
+    J.assemble()
+    assert np.isfinite(J.norm())
+    du = J.createVecRight()
+    du.array[:] = np.random.default_rng(3).uniform(-1, 1, du.array.shape)
+    Jdu = J.createVecLeft()
+    J.mult(du, Jdu)
+    u0 = u.x.array.copy()
+    eps = 1e-7
+    res = []
+    for sgn in (1, -1):
+        u.x.array[:] = u0 + sgn * eps * du.array
+        res.append(assemble_vector(F).array.copy())
+    u.x.array[:] = u0
+    fd = (res[0] - res[1]) / (2 * eps)
+    assert np.linalg.norm(fd - Jdu.array) <= 1e-5 * np.linalg.norm(Jdu.array)
