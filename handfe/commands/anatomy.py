@@ -1,0 +1,83 @@
+"""``handfe anatomy``: build, pose and mesh the hand of a subject (or import scanned surfaces)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = """Build a subject's hand from the anatomy tables, pose it by joint angles and mesh it with
+gmsh (tetrahedra), or import a subject's segmented surfaces. Units: mm, degrees.
+
+Writes into --out: hand.xdmf (mesh, cell tags skin=1 subcutaneous=2 nail=3, facet tags: wrist=90,
+palm cut=91, skin by region/phalanx 100+10*region+phalanx, bone surfaces 201..227),
+anatomy.json (bone frames, joints, ligaments, tendon insertions in the posed frame),
+quality.json (cells, quality, dihedral angles, volumes, areas, skin thickness, timings) and
+hand.png (palmar view, regions coloured).
+"""
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "anatomy", help="build, pose and mesh a subject's hand (or import scanned surfaces)",
+        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--subject", default="subjects/S01", metavar="DIR",
+                   help="subject directory holding anthropometry.toml (lengths in mm; "
+                        "default: subjects/S01, a 50th-percentile adult male)")
+    p.add_argument("--pose", metavar="FILE",
+                   help="posture TOML with a table [angles] of DOF = value (degrees for "
+                        "rotations, mm for wrist translations; DOF names and limits in "
+                        "anatomy/joints.csv). Default: the neutral pose (all zero). Examples: "
+                        "anatomy/poses/{cylindrical,spherical,precision}.toml")
+    p.add_argument("--digits", metavar="LIST",
+                   help="comma-separated digits to mesh (thumb,index,middle,ring,little); the "
+                        "palm is cut between kept and dropped fingers so that only the part "
+                        "carrying the kept digits is meshed. Default: the whole hand")
+    p.add_argument("--mesh", default="reduced", choices=("reduced", "default", "fine"),
+                   help="mesh level: global / fingertip-pad / palm element size in mm: reduced "
+                        "3.0/2.0/3.0, default 2.6/1.2/2.0, fine 1.8/0.8/1.3 (default: reduced)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+    p.add_argument("--import", dest="import_skin", metavar="SKIN",
+                   help="import path: closed outer skin surface of a subject (STL/OBJ/PLY, mm); "
+                        "needs --bones. The skin layer is the --skin-thickness offset inwards")
+    p.add_argument("--bones", metavar="DIR",
+                   help="with --import: directory of closed bone surfaces named after the bones "
+                        "of anatomy/bones.csv (e.g. index_dp.stl), mm")
+    p.add_argument("--skin-thickness", type=float, default=None, metavar="MM",
+                   help="with --import: skin thickness in mm (default: the subject's value)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from mpi4py import MPI
+
+    from handfe.anatomy import load_subject
+    from handfe.errors import InputError
+    from handfe.kinematics import Pose
+    from handfe.parallel import rprint
+
+    comm = MPI.COMM_WORLD
+    if args.import_skin:
+        from handfe.anatomy.importer import import_hand
+        from handfe.anatomy.outputs import write_outputs
+
+        if not args.bones:
+            raise InputError("--import needs --bones DIR (one closed surface per bone)")
+        subject = load_subject(args.subject)
+        t = args.skin_thickness or subject.hand.skin_thickness_mm
+        model = import_hand(args.import_skin, args.bones, skin_thickness_mm=t,
+                            level=args.mesh, comm=comm)
+        paths = write_outputs(model, args.out)
+        rprint(f"imported {args.import_skin}: {model.quality['cells']} tets -> {paths['xdmf']}")
+        return 0
+    if args.bones:
+        raise InputError("--bones is only used with --import SKIN")
+    from handfe.anatomy import build_hand, write_outputs
+
+    subject = load_subject(args.subject)
+    pose = Pose.from_toml(args.pose) if args.pose else Pose.neutral()
+    model = build_hand(subject, pose, digits=args.digits, level=args.mesh, comm=comm)
+    paths = write_outputs(model, args.out)
+    q = model.quality
+    rprint(f"{subject.subject} {','.join(model.digits)} ({args.mesh}): {q['cells']} tets, "
+           f"min quality {q['min_quality']:.3f}, hand volume {q['hand_volume_cm3']:.0f} cm3, "
+           f"meshing {q['meshing_time_s']:.1f} s -> {paths['xdmf'].parent}")
+    return 0
