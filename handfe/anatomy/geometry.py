@@ -158,22 +158,34 @@ def cut_planes(skel: Skeleton, digits: tuple[str, ...]) -> list[tuple[np.ndarray
 
 def kept_bones(skel: Skeleton, digits: tuple[str, ...],
                planes: list[tuple[np.ndarray, np.ndarray]]) -> tuple[str, ...]:
+    """Bones kept by a partial hand. Each cut plane is shifted (in place, by the smallest offset
+    within +-30 mm) so that it clears every bone it would cut by the skin thickness + 1.5 mm;
+    bones (carpals) on the removed side are dropped with the tissue around them."""
+    clear = skel.subject.hand.skin_thickness_mm + 1.5
+    cand = [(n, b.ellipsoid) for n, b in skel.bones.items()
+            if not (b.digit in DIGITS and b.digit not in digits)]
+    for k, (p0, n) in enumerate(planes):
+        for off in sorted(np.arange(-30.0, 30.01, 0.25), key=abs):
+            q0 = p0 + off * n
+            ok = True
+            for _, e in cand:
+                dist = float(np.dot(e.c - q0, n))
+                support = float(np.linalg.norm((e.R.T @ n) * e.s))
+                if abs(dist) < support + clear:
+                    ok = False
+                    break
+            if ok:
+                planes[k] = (q0, n)
+                break
+        else:
+            raise InputError(f"digits={','.join(digits)}: no palm cut plane clears the bones")
     out = []
-    for name, b in skel.bones.items():
-        if b.digit in DIGITS and b.digit not in digits:
-            continue
-        e = b.ellipsoid
-        keep = True
-        for p0, n in planes:
-            dist = float(np.dot(e.c - p0, n))
-            support = float(np.linalg.norm((e.R.T @ n) * e.s))
-            if dist > support:
-                keep = False
-            elif dist > -support - 0.3:
-                raise InputError(f"digits={','.join(digits)}: the palm cut plane between the "
-                                 f"kept and the removed fingers would cut bone {name}")
-        if keep:
+    for name, e in cand:
+        if all(float(np.dot(e.c - p0, n)) < 0 for p0, n in planes):
             out.append(name)
+        elif skel.bones[name].digit in digits:
+            raise InputError(f"digits={','.join(digits)}: bone {name} of a kept digit lies "
+                             "beyond the palm cut plane")
     return tuple(out)
 
 
@@ -219,6 +231,7 @@ def build_occ(gmsh, skel: Skeleton, digits: tuple[str, ...]) -> OccHand:
     t = skel.subject.hand.skin_thickness_mm
     full = tuple(d for d in DIGITS if d in digits) == DIGITS
     planes = [] if full else cut_planes(skel, digits)
+    bones = kept_bones(skel, digits, planes)  # may move the planes clear of carpal bones
     groups = []
     for d in DIGITS:
         if d in digits:
@@ -230,11 +243,13 @@ def build_occ(gmsh, skel: Skeleton, digits: tuple[str, ...]) -> OccHand:
     occ.synchronize()
     tm = {}
     t0 = time.perf_counter()
-    outer_v = _envelope(gmsh, skel, groups, 0.0, planes)
+    H = skel.hand_frame
+    y_wrist = -skel.subject.hand.forearm_stub_mm
+    wrist_plane = (H.apply(np.array([0.0, y_wrist, 0.0])), -H.R[:, 1])
+    outer_v = _envelope(gmsh, skel, groups, 0.0, planes + [wrist_plane])
     tm["outer_envelope"] = time.perf_counter() - t0
-    inner_v = _envelope(gmsh, skel, groups, t, planes)
+    inner_v = _envelope(gmsh, skel, groups, t, planes + [wrist_plane])
     tm["inner_envelope"] = time.perf_counter() - t0 - tm["outer_envelope"]
-    bones = kept_bones(skel, digits, planes)
     occ.synchronize()
     vol_outer = occ.getMass(*outer_v[0])
     vol_inner = occ.getMass(*inner_v[0])
@@ -275,8 +290,6 @@ def build_occ(gmsh, skel: Skeleton, digits: tuple[str, ...]) -> OccHand:
         raise InputError(f"geometry failed: bone surface(s) of {missing} not found {bone_faces}")
     bone_set = {ss[0] for ss in bone_faces.values()}
     wrist, cut_s, outer = [], [], []
-    H = skel.hand_frame
-    y_wrist = -skel.subject.hand.forearm_stub_mm
     for s in sorted(ext - bone_set):
         c = np.array(occ.getCenterOfMass(2, s))
         if abs(H.inverse_apply(c)[1] - y_wrist) < 1e-3 and _is_planar(gmsh, s, H.R[:, 1]):

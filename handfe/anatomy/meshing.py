@@ -322,8 +322,11 @@ def _skin_thickness(gmsh, skel, occ_hand, X, tris, digits, n_max: int = 120) -> 
     qh = H.inverse_apply(P)
     lev = np.min(np.stack([skel.primitives[i].level(P) for d in digits
                            for i in skel.digit_primitives[d]], axis=1), axis=1)
+    far_cut = np.ones(len(P), dtype=bool)
+    for p0, n in occ_hand.cut_planes:
+        far_cut &= np.abs((P - p0) @ n) > 8.0
     palm_ok = np.flatnonzero((lev > 1.6) & (qh[:, 1] > 15.0) & (qh[:, 1] < 45.0)
-                             & (np.abs(qh[:, 2]) > 10.0))
+                             & (np.abs(qh[:, 2]) > 10.0) & far_cut)
     pick += list(palm_ok[:: max(1, len(palm_ok) // 16)][:16])
     pick = pick[:n_max]
     # nearest inner-surface triangle first (robust: the mesh is trimmed), then gmsh's exact
@@ -354,7 +357,8 @@ def _skin_thickness(gmsh, skel, occ_hand, X, tris, digits, n_max: int = 120) -> 
     return {"nominal": skel.subject.hand.skin_thickness_mm, "n_points": int(len(pick)),
             "min": float(np.min(dist)), "max": float(np.max(dist)),
             "mean": float(np.mean(dist)),
-            "where": "mid-shaft of each phalanx and the middle of the palm (away from creases)"}
+            "where": "mid-shaft of each phalanx and the middle of the palm (away from creases, "
+                     "the wrist and palm-cut faces)"}
 
 
 def _point_triangles(x: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

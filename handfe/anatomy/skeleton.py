@@ -437,8 +437,9 @@ def build_skeleton(subject: Anthropometry, pose: Pose | None = None) -> Skeleton
     y_a1 = mcp["little"][1] + 4.0
     T_web = 2.0 * (max(subject.digit(d).base_width_mm for d in FINGERS_) / 2 * 1.0 + 6.0)
     boxes = (
-        ("wrist", np.eye(3), np.array([xw, (20.0 - h.forearm_stub_mm) / 2, 0.0]),
-         (Ww / 2, (20.0 + h.forearm_stub_mm) / 2, Tw / 2)),
+        # the wrist box runs 25 mm past the wrist cut; geometry cuts it with a plane there
+        ("wrist", np.eye(3), np.array([xw, (20.0 - h.forearm_stub_mm - 25.0) / 2, 0.0]),
+         (Ww / 2, (20.0 + h.forearm_stub_mm + 25.0) / 2, Tw / 2)),
         ("palm", np.eye(3), np.array([(x_rad + x_uln) / 2, y_a1 / 2, 0.0]),
          ((x_rad - x_uln) / 2, y_a1 / 2, HT / 2)),
         ("web", R_mcp, c_mcp - 10.0 * n_mcp, (W_mcp / 2, 20.0, T_web / 2)),
