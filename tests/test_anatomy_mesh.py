@@ -160,3 +160,53 @@ def test_cli_errors(tmp_path, capsys):
     assert "unknown digit 'pinky'" in capsys.readouterr().err
     assert main(["anatomy", "--digits", "index,ring", "--out", str(tmp_path / "o")]) == 2
     assert "neighbours" in capsys.readouterr().err
+
+
+def test_import_round_trip(pinch, tmp_path):
+    from handfe.anatomy.importer import export_surfaces, import_hand
+
+    skin, bones_dir = export_surfaces(pinch, tmp_path / "scan")
+    m = import_hand(skin, bones_dir, skin_thickness_mm=1.2, comm=MPI.COMM_SELF)
+    assert set(m.bones) == set(pinch.bones)
+    fv = set(np.unique(m.facet_tags.values))
+    for b in m.bones:
+        assert m.tags[f"bone_{b}"] in fv
+    for name in ("skin_index_distal", "skin_middle_proximal", "skin_thumb_distal", "skin_palm"):
+        assert m.tags[name] in fv
+    assert set(np.unique(m.cell_tags.values)) == {1, 2}
+    # same hand: enclosed volume within 2 %
+    assert m.quality["hand_volume_cm3"] == pytest.approx(pinch.quality["hand_volume_cm3"],
+                                                         rel=0.02)
+    assert m.quality["min_quality"] > MIN_QUALITY
+    from handfe.anatomy import write_outputs
+
+    paths = write_outputs(m, tmp_path / "imported")
+    assert paths["png"].is_file()
+
+
+def test_import_refusals(pinch, tmp_path):
+    import trimesh
+
+    from handfe.anatomy.importer import export_surfaces, import_hand, load_surface
+    from handfe.errors import InputError
+
+    skin, bones_dir = export_surfaces(pinch, tmp_path / "scan")
+    m = trimesh.load(skin, force="mesh")
+    one = tmp_path / "one_missing.stl"
+    trimesh.Trimesh(m.vertices, m.faces[:-1], process=False).export(one)
+    repaired = load_surface(one, "skin surface")  # a single missing triangle is repaired
+    assert repaired.is_watertight and repaired.volume == pytest.approx(m.volume, rel=1e-3)
+    holed = trimesh.Trimesh(m.vertices, m.faces[:-40], process=False)
+    bad = tmp_path / "holed.stl"
+    holed.export(bad)
+    with pytest.raises(InputError, match=r"holed.stl: the skin surface is not watertight"):
+        load_surface(bad, "skin surface")
+    (bones_dir / "femur.stl").write_bytes((bones_dir / "index_dp.stl").read_bytes())
+    with pytest.raises(InputError, match="unknown bone name 'femur'"):
+        import_hand(skin, bones_dir, comm=MPI.COMM_SELF)
+    (bones_dir / "femur.stl").unlink()
+    b = trimesh.load(bones_dir / "index_dp.stl", force="mesh")
+    b.apply_translation([0.0, 0.0, -30.0])  # push the bone out of the finger
+    b.export(bones_dir / "index_dp.stl")
+    with pytest.raises(InputError, match="bone index_dp is not inside"):
+        import_hand(skin, bones_dir, comm=MPI.COMM_SELF)

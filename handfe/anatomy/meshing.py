@@ -88,7 +88,7 @@ class HandModel:
     facet_tags: object
     tags: dict[str, int]
     groups: dict[str, tuple[int, ...]]
-    skeleton: Skeleton
+    skeleton: Skeleton | None  # None for imported surfaces
     digits: tuple[str, ...]
     level: str
     quality: dict = field(default_factory=dict)
@@ -96,7 +96,7 @@ class HandModel:
 
     @property
     def bone_frames(self) -> dict[str, np.ndarray]:
-        return self.skeleton.bone_frames()
+        return self.skeleton.bone_frames() if self.skeleton is not None else {}
 
     @property
     def bones(self) -> tuple[str, ...]:
@@ -104,12 +104,16 @@ class HandModel:
 
     @property
     def ligaments(self) -> list[dict]:
+        if self.skeleton is None:
+            return []
         kept = set(self.bones)
         return [lg for lg in self.skeleton.ligaments()
                 if lg["bone_a"] in kept and lg["bone_b"] in kept]
 
     @property
     def insertions(self) -> list[dict]:
+        if self.skeleton is None:
+            return []
         kept = set(self.bones)
         return [i for i in self.skeleton.insertions() if i["bone"] in kept]
 
@@ -398,6 +402,7 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
                digits: str | tuple[str, ...] | None = None, level: str = "reduced",
                comm: MPI.Comm = MPI.COMM_WORLD) -> HandModel:
     """Posed, meshed hand (gmsh on rank 0, mesh distributed over ``comm``)."""
+    import dolfinx.fem  # noqa: F401  (import dolfinx fully before dolfinx.io: circular import)
     import gmsh
     from dolfinx import mesh as dmesh
     from dolfinx.io import gmshio

@@ -17,6 +17,13 @@ REGION_COLOURS = {"thumb": "#d62728", "index": "#ff7f0e", "middle": "#2ca02c",
 def anatomy_dict(model: HandModel) -> dict:
     """Bone frames, bone ellipsoids, joints, ligaments and insertions (posed world frame, mm)."""
     sk = model.skeleton
+    if sk is None:  # imported surfaces: no kinematic model
+        return {"units": "mm", "imported": model.quality.get("imported"),
+                "digits": list(model.digits), "level": model.level,
+                "bones": {b: {"surface_tag": model.tags[f"bone_{b}"]} for b in model.bones},
+                "tags": model.tags, "groups": {k: list(v) for k, v in model.groups.items()},
+                "note": "imported model: bone frames, ligaments and insertions need a skeleton "
+                        "registered to the scans (not done by the import path)"}
     kept = set(model.bones)
     bones = {}
     for name, b in sk.bones.items():
@@ -61,7 +68,8 @@ def render_png(model: HandModel, path: Path) -> None:
     from matplotlib.patches import Patch
 
     surf = model.surface
-    P = model.skeleton.hand_frame.inverse_apply(surf.points)  # hand frame: view from +z
+    P = (model.skeleton.hand_frame.inverse_apply(surf.points) if model.skeleton is not None
+         else surf.points)  # hand frame: palmar view from +z
     tri = surf.triangles
     T = P[tri]
     n = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
@@ -80,7 +88,8 @@ def render_png(model: HandModel, path: Path) -> None:
     ax.set_xlabel("x (mm, radial)")
     ax.set_ylabel("y (mm, distal)")
     q = model.quality
-    ax.set_title(f"{model.skeleton.subject.subject} palmar view - {q.get('cells', 0)} tets "
+    who = model.skeleton.subject.subject if model.skeleton is not None else "imported"
+    ax.set_title(f"{who} palmar view - {q.get('cells', 0)} tets "
                  f"({model.level}), {q.get('hand_volume_cm3', 0):.0f} cm$^3$", fontsize=9)
     present = sorted({REGIONS[r] for r in np.unique(region)}, key=REGIONS.index)
     ax.legend(handles=[Patch(color=REGION_COLOURS[r], label=r) for r in present],
