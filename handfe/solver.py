@@ -377,14 +377,15 @@ class NewtonSolver:
 def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
           newton: NewtonOptions | None = None, stepping: LoadStepping | None = None,
           on_step: Callable[[float, SolveResult], None] | None = None,
-          augment: Callable[[], tuple[bool, float]] | None = None,
+          augment: Callable[[bool], tuple[bool, float]] | None = None,
           progress: Callable[[str], None] | None = None) -> SolveResult:
     """Drive the load factor t from 0 to 1.
 
     ``set_load(t)`` updates the load (fem.Constant values of Dirichlet data, tractions, obstacle
-    positions) for factor t. ``augment()`` (optional) is called after each converged Newton solve;
-    it updates multipliers and returns (done, violation); Newton is repeated until done (at most
-    ``stepping.max_augment`` times). ``on_step(t, result)`` runs after each accepted step.
+    positions) for factor t. ``augment(final)`` (optional) is called after each converged Newton
+    solve, ``final`` True at t = 1; it updates multipliers and returns (done, violation); Newton is
+    repeated until done (at most ``stepping.max_augment`` times). ``on_step(t, result)`` runs
+    after each accepted step.
     Raises :class:`SolverError` if a step fails after cutting to ``stepping.min_step``.
     """
     stepping = stepping or LoadStepping()
@@ -420,7 +421,7 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                     its, hist = its + its2, hist + hist2
                 n_aug = 0
                 while ok and augment is not None:
-                    done, violation = augment()
+                    done, violation = augment(t_new >= 1.0 - 1e-12)
                     if done:
                         break
                     n_aug += 1

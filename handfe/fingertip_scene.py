@@ -1,0 +1,382 @@
+"""Fingertip plate compression (brief §3): a rigid plate at angle theta to the finger axis is
+pushed against the pad of an index fingertip whose distal phalanx is rigid and held fixed.
+
+Units: mm, N, MPa; pressures reported in kPa. Deflection = plate travel along its normal after
+first contact (brief §3). Control: plate travel (``indent_mm``) or plate force (``force_N``,
+reached to 0.5 % by secant refinement between converged states).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from handfe.errors import InputError, SolverError
+from handfe.materials import Material, MooneyRivlin, NeoHookean
+
+FORCE_RTOL = 0.005
+
+
+@dataclass(frozen=True)
+class FingertipConfig:
+    """Scene settings. ``material`` None = the calibrated default (:func:`default_material`)."""
+
+    subject: str = "mean"
+    angle_deg: float = 15.0
+    mesh: str = "default"
+    h_mm: float | None = None
+    element: str = "taylor-hood"
+    material: Material | None = None
+    layered: bool = False
+    skin_thickness_mm: float = 1.0
+    skin_material: Material | None = None
+    friction: float = 0.74
+    penalty_factor: float = 10.0
+    gap_tol_mm: float = 0.01
+    penetration_tol_mm: float = 0.01
+    nail_E_MPa: float = 170.0
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.angle_deg <= 90.0) or not math.isfinite(self.angle_deg):
+            raise InputError(f"plate angle {self.angle_deg!r} deg must be within 0..90")
+        if self.friction < 0 or not math.isfinite(self.friction):
+            raise InputError(f"friction coefficient {self.friction!r} must be >= 0")
+
+
+CALIBRATION_FILE = Path(__file__).resolve().parent.parent / "reference" / \
+    "fingertip_calibrated_material.json"
+
+
+def default_material() -> Material:
+    """The pulp material fitted by ``handfe calibrate fingertip`` to the 15-degree deflections
+    (``reference/fingertip_calibrated_material.json``), or the brief's published
+    Mooney-Rivlin-type fit (C01 = 0.59 kPa, C20 = 2.65 kPa, nu = 0.49) if none was stored."""
+    if CALIBRATION_FILE.exists():
+        data = json.loads(CALIBRATION_FILE.read_text())
+        p = data["parameters"]
+        if data["law"] == "mooney-rivlin":
+            return MooneyRivlin(**p)
+        if data["law"] == "neo-hookean":
+            return NeoHookean(**p)
+    return MooneyRivlin.fingertip_mean()
+
+
+@dataclass
+class FingertipResult:
+    """Outputs of one compression (the keys of ``summary.json``)."""
+
+    force_N: float
+    deflection_mm: float
+    contact_area_mm2: float
+    contact_length_mm: float
+    contact_width_mm: float
+    mean_pressure_kPa: float
+    peak_pressure_kPa: float
+    max_penetration_mm: float
+    tangential_force_N: float
+    bone_reaction_N: list[float]
+    plate_force_vector_N: list[float]
+    load_steps: int
+    newton_iterations: int
+    uzawa_updates: int
+    dofs: int
+    cells: int
+    wall_s: float
+    solve_s: float
+    mesh_s: float
+    angle_deg: float
+    subject: str
+    mesh: str
+    element: str
+    material: dict[str, Any]
+    sweep: list[dict[str, float]] = field(default_factory=list)
+
+
+class FingertipCompression:
+    """The scene: mesh, problem, plate contact. Build once, then :meth:`push_to_force` or
+    :meth:`push_to_deflection` (repeatable, continuing from the current state)."""
+
+    def __init__(self, cfg: FingertipConfig, *, comm=None,
+                 progress: Callable[[str], None] | None = None):
+        from mpi4py import MPI
+
+        from handfe import contact as C
+        from handfe.contact_problem import RigidContact
+        from handfe.fingertip import build_fingertip_mesh, fingertip_geometry
+        from handfe.materials import StVenantKirchhoff
+        from handfe.solver import Discretisation, HyperelasticProblem
+
+        self.cfg = cfg
+        self.comm = comm or MPI.COMM_WORLD
+        self.progress = progress
+        t0 = time.perf_counter()
+        self.geom = fingertip_geometry(cfg.subject)
+        self.fm = build_fingertip_mesh(self.geom, level=cfg.mesh, h_mm=cfg.h_mm,
+                                       layered=cfg.layered,
+                                       skin_thickness_mm=cfg.skin_thickness_mm, comm=self.comm)
+        self.mesh_s = time.perf_counter() - t0
+        tags = self.fm.tags
+        pulp = cfg.material or default_material()
+        self.material = pulp
+        mats: dict[int, Material] = {}
+        if cfg.layered:
+            mats[tags["skin"]] = cfg.skin_material or pulp
+            mats[tags["subcutaneous"]] = pulp
+        else:
+            mats[tags["pulp"]] = pulp
+        # the nail as a near-linear elastic plate (small strains): neo-Hookean with E, nu = 0.3
+        if "nail" in tags and self.fm.cells_per_tag.get("nail", 1) > 0:
+            mats[tags["nail"]] = NeoHookean.from_E_nu(cfg.nail_E_MPa, 0.3)
+        del StVenantKirchhoff
+        self.problem = HyperelasticProblem(self.fm.mesh, mats, cell_tags=self.fm.cell_tags,
+                                           disc=Discretisation(cfg.element))
+        fdim = 2
+        self.bone_facets = self.fm.facet_tags.find(tags["bone"])
+        self.problem.fix(self.bone_facets)
+        self.plate = C.plate(cfg.angle_deg)
+        self.n_plate = np.array(self.plate.normal, dtype=float)
+        self.contact = RigidContact(self.problem, self.plate, self.fm.facet_tags, tags["pad"],
+                                    mu=cfg.friction, penalty_factor=cfg.penalty_factor,
+                                    penetration_tol_mm=cfg.penetration_tol_mm,
+                                    gap_tol_mm=cfg.gap_tol_mm, E_eff_MPa=pulp.youngs_modulus_MPa)
+        del fdim
+        # first contact: the plate plane through the lowest pad point along n
+        self.g0 = self._initial_gap()
+        self.deflection = 0.0
+        self._set_plate(0.0)
+        import ufl
+        from dolfinx import fem
+
+        ds = ufl.Measure("ds", domain=self.fm.mesh, subdomain_data=self.fm.facet_tags,
+                         metadata=self.problem.ds_metadata)
+        t = self.contact.terms
+        self._force_form = fem.form(t.pressure * t.area_factor * ds(tags["pad"]))
+        self.results: list[Any] = []
+
+    # -- geometry of the plate --------------------------------------------------------------
+    def _initial_gap(self) -> float:
+        from mpi4py import MPI
+
+        x = self.fm.mesh.geometry.x
+        pad = self.fm.facet_tags.find(self.fm.tags["pad"])
+        from dolfinx.mesh import compute_incident_entities
+
+        verts = compute_incident_entities(self.fm.mesh, pad, 2, 0)
+        from dolfinx.cpp.mesh import entities_to_geometry
+
+        geo = entities_to_geometry(self.fm.mesh._mesh, 0, verts, False).reshape(-1)
+        g, _ = self.plate.gap_normal(x[geo]) if len(geo) else (np.array([np.inf]), None)
+        gmin = float(np.min(g)) if len(g) else math.inf
+        return self.comm.allreduce(gmin, op=MPI.MIN)
+
+    def _set_plate(self, d: float) -> None:
+        self.contact.translation.value = self.n_plate * (self.g0 + d)
+
+    def plate_force(self) -> float:
+        """Normal force of the plate on the finger (N): int p da over the pad."""
+        from dolfinx import fem
+        from mpi4py import MPI
+
+        return self.comm.allreduce(fem.assemble_scalar(self._force_form), op=MPI.SUM)
+
+    # -- loading ------------------------------------------------------------------------------
+    def _snapshot(self):
+        lam = self.contact.lambda_n
+        return (self.problem.w.x.array.copy(), None if lam is None else lam.x.array.copy(),
+                self.deflection, None if self.contact.u_ref is None else
+                self.contact.u_ref.x.array.copy(), self.contact.translation_ref.value.copy())
+
+    def _restore(self, snap) -> None:
+        w, lam, d, uref, tref = snap
+        self.problem.w.x.array[:] = w
+        if lam is not None:
+            self.contact.lambda_n.x.array[:] = lam
+        if uref is not None:
+            self.contact.u_ref.x.array[:] = uref
+        self.contact.translation_ref.value = tref
+        self.deflection = d
+        self._set_plate(d)
+
+    def _segment(self, d_target: float, initial: float = 1.0, on_point=None):
+        from handfe.solver import LoadStepping, solve
+
+        d0 = self.deflection
+
+        def set_load(t: float) -> None:
+            self._set_plate(d0 + t * (d_target - d0))
+
+        def on_step(t: float, r) -> None:
+            self.contact.on_step(t, r)
+            self.deflection = d0 + t * (d_target - d0)
+            if on_point is not None:
+                on_point(self.deflection)
+
+        res = solve(self.problem, set_load, augment=self.contact.augment, on_step=on_step,
+                    stepping=LoadStepping(initial=initial, min_step=1.0 / 256),
+                    progress=self.progress)
+        self.results.append(res)
+        self.deflection = d_target
+        return res
+
+    def push_to_deflection(self, d_mm: float, *, on_point=None) -> None:
+        if not (math.isfinite(d_mm) and d_mm >= 0.0):
+            raise InputError(f"indentation {d_mm!r} mm must be >= 0")
+        limit = self.geom.DN0_mm if hasattr(self.geom, "DN0_mm") else 6.4
+        if d_mm >= 0.95 * limit:
+            raise InputError(f"indentation {d_mm:g} mm is beyond what the pulp "
+                             f"({limit:g} mm under the bone) can take")
+        self._segment(d_mm, initial=0.25, on_point=on_point)
+
+    def push_to_force(self, force_N: float, *, rtol: float = FORCE_RTOL, on_point=None,
+                      max_deflection_mm: float | None = None) -> None:
+        """Advance the plate until its normal force is ``force_N`` within ``rtol``."""
+        if not (math.isfinite(force_N) and force_N > 0.0):
+            raise InputError(f"plate force {force_N!r} N must be positive")
+        dmax = max_deflection_mm or 0.9 * getattr(self.geom, "DN0_mm", 6.4)
+        F = self.plate_force()
+        lo = (self.deflection, F, self._snapshot())
+        step = 0.5
+        # march until the force passes the target
+        while F < force_N:
+            d_new = min(self.deflection + step, dmax)
+            if d_new <= self.deflection + 1e-9:
+                raise InputError(
+                    f"a plate force of {force_N:g} N cannot be reached: at {self.deflection:.2f}"
+                    f" mm deflection (limit {dmax:.2f} mm, the pulp is "
+                    f"{getattr(self.geom, 'DN0_mm', 6.4):.2f} mm thick) the force is {F:.3g} N")
+            self._segment(d_new, on_point=on_point)
+            F_new = self.plate_force()
+            if F_new < force_N:
+                # secant estimate of the remaining travel, limited to [0.25, 2] mm
+                slope = (F_new - lo[1]) / max(d_new - lo[0], 1e-9)
+                step = float(np.clip(1.2 * (force_N - F_new) / max(slope, 1e-9), 0.1, 1.5))
+                lo = (d_new, F_new, self._snapshot())
+            F = F_new
+        hi = (self.deflection, F)
+        # secant / regula falsi between the bracketing converged states
+        for _ in range(30):
+            if abs(F - force_N) <= rtol * force_N:
+                return
+            d_lo, F_lo, snap = lo
+            d_hi, F_hi = hi
+            d_new = d_lo + (force_N - F_lo) * (d_hi - d_lo) / (F_hi - F_lo)
+            d_new = float(np.clip(d_new, d_lo + 0.02 * (d_hi - d_lo), d_hi - 0.02 * (d_hi - d_lo)))
+            self._restore(snap)
+            self._segment(d_new, on_point=on_point)
+            F = self.plate_force()
+            if F < force_N:
+                lo = (d_new, F, self._snapshot())
+            else:
+                hi = (d_new, F)
+        raise SolverError(f"force control did not reach {force_N:g} N within {rtol:.1%} "
+                          f"(last {F:.4g} N at {self.deflection:.4f} mm)")
+
+    # -- outputs ------------------------------------------------------------------------------
+    def axes(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """In-plate-plane axes: along the finger axis and across it (y)."""
+        th = math.radians(self.cfg.angle_deg)
+        return (math.cos(th), 0.0, math.sin(th)), (0.0, 1.0, 0.0)
+
+    def result(self, wall_s: float) -> FingertipResult:
+        m = self.contact.metrics(axes=self.axes())
+        R = self.problem.reaction(self.bone_facets)
+        its = sum(r.total_newton_iterations for r in self.results)
+        steps = sum(r.load_steps for r in self.results)
+        ups = sum(sum(r.augment_iterations) for r in self.results)
+        solve_s = sum(r.wall_s for r in self.results)
+        mat = self.material
+        return FingertipResult(
+            force_N=self.plate_force(), deflection_mm=self.deflection,
+            contact_area_mm2=m.contact_area_mm2, contact_length_mm=m.length_mm,
+            contact_width_mm=m.width_mm, mean_pressure_kPa=m.mean_pressure_kPa,
+            peak_pressure_kPa=m.peak_pressure_kPa, max_penetration_mm=m.max_penetration_mm,
+            tangential_force_N=m.tangential_force_N, bone_reaction_N=[float(x) for x in R],
+            plate_force_vector_N=[float(x) for x in m.force_vector_N], load_steps=steps,
+            newton_iterations=its, uzawa_updates=ups, dofs=self.problem.num_dofs(),
+            cells=self.fm.num_cells, wall_s=wall_s, solve_s=solve_s, mesh_s=self.mesh_s,
+            angle_deg=self.cfg.angle_deg, subject=self.cfg.subject,
+            mesh=self.cfg.mesh if self.cfg.h_mm is None else f"h={self.cfg.h_mm:g}",
+            element=self.cfg.element,
+            material={"law": mat.law, **{k: (list(v) if isinstance(v, tuple) else v)
+                                         for k, v in asdict(mat).items()}})
+
+    def write_fields(self, out: Path) -> None:
+        """Displacement and contact pressure (P1, on the mesh) as XDMF for ParaView."""
+        from dolfinx import fem
+        from dolfinx.io import XDMFFile
+
+        msh = self.fm.mesh
+        V1 = fem.VectorFunctionSpace(msh, ("CG", 1))
+        u1 = fem.Function(V1, name="displacement_mm")
+        u1.interpolate(self.problem.displacement())
+        Q1 = fem.FunctionSpace(msh, ("CG", 1))
+        p1 = fem.Function(Q1, name="contact_pressure_kPa")
+        p1.interpolate(fem.Expression(1e3 * self.contact.terms.pressure,
+                                      Q1.element.interpolation_points()))
+        with XDMFFile(msh.comm, str(out / "fields.xdmf"), "w") as xf:
+            xf.write_mesh(msh)
+            xf.write_meshtags(self.fm.facet_tags)
+            xf.write_function(u1)
+            xf.write_function(p1)
+        self._p1, self._u1 = p1, u1
+
+    def pressure_png(self, path: Path) -> None:
+        """Off-screen map of the contact pressure on the pad, seen through the plate."""
+        from handfe.io import pad_pressure_png
+
+        pad = self.fm.facet_tags.find(self.fm.tags["pad"])
+        pad_pressure_png(self.fm.mesh, pad, self._u1, self._p1, self.axes(), path,
+                         title=f"fingertip, plate at {self.cfg.angle_deg:g} deg, "
+                               f"{self.plate_force():.2f} N")
+
+
+def run(cfg: FingertipConfig, *, force_N: float | None = None, indent_mm: float | None = None,
+        sweep: bool = False, out_dir: Path | None = None, comm=None,
+        progress: Callable[[str], None] | None = None) -> FingertipResult:
+    """Build the scene, load it, write outputs (rank 0) into ``out_dir``; return the result."""
+    from mpi4py import MPI
+
+    comm = comm or MPI.COMM_WORLD
+    if (force_N is None) == (indent_mm is None):
+        raise InputError("give exactly one of force_N and indent_mm")
+    t0 = time.perf_counter()
+    scene = FingertipCompression(cfg, comm=comm, progress=progress)
+    points: list[dict[str, float]] = []
+
+    def on_point(d: float) -> None:
+        if sweep:
+            m = scene.contact.metrics(axes=scene.axes())
+            points.append({"deflection_mm": d, "force_N": scene.plate_force(),
+                           "contact_area_mm2": m.contact_area_mm2,
+                           "contact_length_mm": m.length_mm, "contact_width_mm": m.width_mm,
+                           "peak_pressure_kPa": m.peak_pressure_kPa})
+
+    if force_N is not None:
+        scene.push_to_force(force_N, on_point=on_point)
+    else:
+        scene.push_to_deflection(indent_mm, on_point=on_point)
+    res = scene.result(time.perf_counter() - t0)
+    res.sweep = sorted(points, key=lambda p: p["deflection_mm"])
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        if comm.rank == 0:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        comm.barrier()
+        scene.write_fields(out_dir)
+        if comm.rank == 0:
+            from handfe.io import write_csv, write_json
+
+            d = asdict(res)
+            d.pop("sweep")
+            write_json(out_dir / "summary.json", d)
+            if sweep:
+                write_csv(out_dir / "sweep.csv", res.sweep)
+        scene.pressure_png(out_dir / "pressure.png")
+    return res
