@@ -160,6 +160,7 @@ def import_hand(skin_path: str | Path, bones_dir: str | Path, *, skin_thickness_
             error = str(exc)
         except Exception as exc:
             error = f"{skin_path}: import meshing failed: {exc}"
+    meshing.idle_wait(comm)
     error = comm.bcast(error, root=0)
     if error:
         if comm.rank == 0 and meshing._GMSH_READY:

@@ -26,8 +26,8 @@ from handfe.kinematics import DIGITS, Pose
 
 LEVELS = {  # mm: global size, size on the fingertip pads, size on the palm
     "reduced": {"h": 3.0, "h_pad": 2.0, "h_palm": 3.0},
-    "default": {"h": 2.6, "h_pad": 1.2, "h_palm": 2.0},
-    "fine": {"h": 1.8, "h_pad": 0.8, "h_palm": 1.3},
+    "default": {"h": 2.0, "h_pad": 1.0, "h_palm": 1.6},
+    "fine": {"h": 1.4, "h_pad": 0.6, "h_palm": 1.1},
 }
 CELL_TAGS = {"skin": 1, "subcutaneous": 2, "nail": 3}
 REGIONS = ("thumb", "index", "middle", "ring", "little", "palm")
@@ -365,6 +365,16 @@ def _skin_thickness(gmsh, skel, occ_hand, X, tris, digits, n_max: int = 120) -> 
                      "the wrist and palm-cut faces)"}
 
 
+def idle_wait(comm: MPI.Comm, poll_s: float = 0.05) -> None:
+    """Barrier that sleeps instead of spinning: while rank 0 runs gmsh, the other ranks would
+    otherwise busy-poll in MPI and take a core from it on a 2-core machine."""
+    if comm.size == 1:
+        return
+    req = comm.Ibarrier()
+    while not req.Test():
+        time.sleep(poll_s)
+
+
 def _point_triangles(x: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance from point x to each triangle (m, 3, 3) and the closest points (m, 3)."""
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
@@ -427,6 +437,7 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
             error = str(exc)
         except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
             error = f"meshing failed for pose {pose.source}: {exc}"
+    idle_wait(comm)
     error = comm.bcast(error, root=0)
     if error:
         if comm.rank == 0:

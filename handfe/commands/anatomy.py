@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "carrying the kept digits is meshed. Default: the whole hand")
     p.add_argument("--mesh", default="reduced", choices=("reduced", "default", "fine"),
                    help="mesh level: global / fingertip-pad / palm element size in mm: reduced "
-                        "3.0/2.0/3.0, default 2.6/1.2/2.0, fine 1.8/0.8/1.3 (default: reduced)")
+                        "3.0/2.0/3.0, default 2.0/1.0/1.6, fine 1.4/0.6/1.1 (default: reduced)")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
     p.add_argument("--import", dest="import_skin", metavar="SKIN",
                    help="import path: closed outer skin surface of a subject (STL/OBJ/PLY, mm); "
