@@ -158,20 +158,28 @@ def cut_planes(skel: Skeleton, digits: tuple[str, ...]) -> list[tuple[np.ndarray
 
 def kept_bones(skel: Skeleton, digits: tuple[str, ...],
                planes: list[tuple[np.ndarray, np.ndarray]]) -> tuple[str, ...]:
-    """Bones kept by a partial hand. Each cut plane is shifted (in place, by the smallest offset
-    within +-30 mm) so that it clears every bone it would cut by the skin thickness + 1.5 mm;
-    bones (carpals) on the removed side are dropped with the tissue around them."""
+    """Bones kept by a partial hand: those of the kept digits and the carpals whose centre lies
+    on the kept side of the cut planes (a carpal across the plane with its centre on the
+    removed side is dropped: its kept part becomes soft tissue). Each plane is then shifted (in
+    place, by the smallest offset within +-30 mm) so that it clears every kept bone by the skin
+    thickness + 1.5 mm (1.5 mm of subcutaneous tissue under the skin of the cut face)."""
     clear = skel.subject.hand.skin_thickness_mm + 1.5
-    cand = [(n, b.ellipsoid) for n, b in skel.bones.items()
-            if not (b.digit in DIGITS and b.digit not in digits)]
+    kept = []
+    for name, b in skel.bones.items():
+        if b.digit in DIGITS and b.digit not in digits:
+            continue
+        c = b.ellipsoid.c
+        if b.segment == "carpal" and any(float(np.dot(c - p0, n)) > 0 for p0, n in planes):
+            continue
+        kept.append((name, b.ellipsoid))
     for k, (p0, n) in enumerate(planes):
         for off in sorted(np.arange(-30.0, 30.01, 0.25), key=abs):
             q0 = p0 + off * n
             ok = True
-            for _, e in cand:
+            for _, e in kept:
                 dist = float(np.dot(e.c - q0, n))
                 support = float(np.linalg.norm((e.R.T @ n) * e.s))
-                if abs(dist) < support + clear:
+                if dist > -support - clear:
                     ok = False
                     break
             if ok:
@@ -179,14 +187,7 @@ def kept_bones(skel: Skeleton, digits: tuple[str, ...],
                 break
         else:
             raise InputError(f"digits={','.join(digits)}: no palm cut plane clears the bones")
-    out = []
-    for name, e in cand:
-        if all(float(np.dot(e.c - p0, n)) < 0 for p0, n in planes):
-            out.append(name)
-        elif skel.bones[name].digit in digits:
-            raise InputError(f"digits={','.join(digits)}: bone {name} of a kept digit lies "
-                             "beyond the palm cut plane")
-    return tuple(out)
+    return tuple(name for name, _ in kept)
 
 
 def _half_space(gmsh, skel: Skeleton, p0: np.ndarray, n: np.ndarray) -> tuple[int, int]:
