@@ -186,3 +186,22 @@ def test_frictionless_gives_no_tangential_force():
     assert sc.slip_mm() == pytest.approx(0.3, rel=1e-3)
     m = sc.contact.metrics()
     assert m.tangential_force_N == 0.0
+
+
+@pytest.mark.mpi
+def test_friction_ranks_agree():
+    """Press, stick and slide on COMM_WORLD equal the serial solve (COMM_SELF) to 1e-6."""
+
+    def run(comm):
+        sc = BlockScene(0.74, comm)
+        sc.move((0.0, 0.0, -DELTA), initial=0.5)
+        out = []
+        for d in (0.08, 0.6):
+            sc.move((d, 0.0, -DELTA), initial=0.125)
+            N, F = sc.forces()
+            out += [N, F[0], sc.slip_mm()]
+        return np.array(out)
+
+    ser = run(MPI.COMM_SELF)
+    par = ser if MPI.COMM_WORLD.size == 1 else run(MPI.COMM_WORLD)
+    np.testing.assert_allclose(par, ser, rtol=1e-6, atol=1e-9)
