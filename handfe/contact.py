@@ -560,6 +560,14 @@ class UzawaUpdate:
         self._gfun = fem.Function(V)
         self._comm = mesh.comm
 
+    def penetration(self) -> float:
+        """Largest penetration (mm) at the multiplier dofs, over all ranks, without updating."""
+        from mpi4py import MPI
+
+        self._gfun.interpolate(self._g)
+        pen = float(np.max(-self._gfun.x.array[self._dofs], initial=0.0))
+        return max(0.0, self._comm.allreduce(pen, op=MPI.MAX))
+
     def __call__(self) -> tuple[float, float]:
         from mpi4py import MPI
 
@@ -578,14 +586,17 @@ class UzawaUpdate:
 
 
 def friction_anchor_update(s_T: np.ndarray, pressure: np.ndarray, mu: float,
-                           k_t: float) -> np.ndarray:
+                           k_t: float, margin: float = 1.0) -> np.ndarray:
     """Return-mapping for the stick anchor, nodal NumPy arrays: given the tangential slip
     ``s_T`` (n, 3) since the anchor and the pressure (n,) at converged state, return the shift
-    to add to ``u_ref`` so that the elastic slip left is ``min(|s|, mu p / k_t) s/|s|``
-    (nodes that stuck are not moved; nodes that slipped keep exactly the Coulomb limit)."""
+    to add to ``u_ref``. Nodes that stuck (k_t |s| <= mu p) are not moved; nodes that slipped
+    keep the elastic slip ``margin * mu p / k_t`` along s/|s| (``margin`` > 1 keeps the
+    quadrature points between slipping nodes in the slip branch, so the traction stays
+    exactly mu p there); nodes out of contact (p = 0) follow the surface."""
     s = np.asarray(s_T, dtype=float)
     ns = np.sqrt(np.maximum(np.einsum("ij,ij->i", s, s), EPS**2))
-    keep = np.minimum(ns, mu * np.maximum(pressure, 0.0) / k_t)
+    limit = mu * np.maximum(pressure, 0.0) / k_t
+    keep = np.where(ns <= limit, ns, np.minimum(ns, margin * limit))
     return s - s * (keep / ns)[:, None]
 
 

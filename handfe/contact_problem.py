@@ -29,6 +29,7 @@ from handfe.contact import (
     ContactMetrics,
     UzawaUpdate,
     contact_metrics,
+    friction_anchor_update,
     penalty_stiffness,
     ufl_contact_terms,
 )
@@ -98,29 +99,43 @@ class RigidContact:
                                        ds(tag), k_n=self.k_n, lambda_n=self.lambda_n, **kw)
         problem.add_residual(self.terms.residual)
         self.uzawa = UzawaUpdate(self.terms, facets) if augmented else None
+        if mu > 0:
+            # nodal slip and pressure at the anchor's dofs, for the return mapping in on_step
+            n = self.terms.normal
+            Pt = ufl.Identity(3) - ufl.outer(n, n)
+            slip = Pt * ((problem.u - self.u_ref) - (self.translation - self.translation_ref))
+            pts = Vu.element.interpolation_points()
+            self._slip_expr = fem.Expression(slip, pts)
+            self._p_expr = fem.Expression(self.terms.pressure, pts)
+            self._slip = fem.Function(Vu)
+            self._pnode = fem.Function(fem.FunctionSpace(mesh, ("CG", problem.disc.degree)))
         self._u_out: fem.Function | None = None
         self.last_penetration_mm = float("nan")
         self.max_penalty_growth = 64.0
 
     def augment(self, final: bool = True) -> tuple[bool, float]:
-        """One Uzawa update. At the final load step (``final``) the solver repeats Newton until
-        the largest penetration is <= the tolerance; at intermediate steps one update warm-starts
-        the next step and no re-solve is asked for (the penetration there is reported only).
+        """Augmented-Lagrangian check after a converged Newton solve.
 
-        Penalty growth (the standard augmented-Lagrangian safeguard): when an update reduces the
-        penetration by less than half, k_n is doubled (a Constant: no recompilation), up to
-        ``max_penalty_growth`` times its initial value."""
+        The penetration is measured first: if it is within the tolerance (or this is an
+        intermediate load step), nothing is changed and the solved state stays consistent with
+        its multipliers, so reported forces are the ones the solve balanced. Otherwise one Uzawa
+        update (lambda <- p) is made and the solver re-solves. Penalty growth (the standard
+        safeguard): when the penetration fell by less than half since the last update, k_n is
+        doubled (a Constant: no recompilation), up to ``max_penalty_growth`` x its start value."""
         if self.uzawa is None:
             return True, 0.0
-        _, pen = self.uzawa()
+        pen = self.uzawa.penetration()
+        if not final or pen <= self.penetration_tol_mm:
+            self.last_penetration_mm = pen
+            return True, pen
         prev = self.last_penetration_mm
+        self.uzawa()
         self.last_penetration_mm = pen
-        done = (pen <= self.penetration_tol_mm) or not final
-        if not done and math.isfinite(prev) and pen > 0.5 * prev:
+        if math.isfinite(prev) and pen > 0.5 * prev:
             k = float(self.k_n.value)
             if k < self.max_penalty_growth * self.k_n_value:
                 self.k_n.value = 2.0 * k
-        return done, pen
+        return False, pen
 
     def reset_penalty(self) -> None:
         """Back to the automatic penalty (e.g. before a new loading path)."""
@@ -128,17 +143,21 @@ class RigidContact:
         self.last_penetration_mm = float("nan")
 
     def on_step(self, t: float, result: Any) -> None:
-        """After an accepted load step: move the stick anchor (incremental friction)."""
-        if self.u_ref is not None:
-            self.u_ref.interpolate(self.problem.displacement())
-            self.translation_ref.value = self.translation.value
-
-    def reset(self) -> None:
-        if self.lambda_n is not None:
-            self.lambda_n.x.array[:] = 0.0
-        if self.u_ref is not None:
-            self.u_ref.x.array[:] = 0.0
-        self.translation_ref.value = self.translation.value
+        """After an accepted load step: return-map the stick anchor (Coulomb friction with
+        memory). Nodes that stuck keep their anchor, so stick persists over load steps; nodes
+        that slipped move their anchor to twice the slip limit mu p / k_t; nodes out of
+        contact (p = 0) carry no anchor (margin 2: see
+        :func:`handfe.contact.friction_anchor_update`). The obstacle's anchor translation stays
+        0."""
+        if self.u_ref is None:
+            return
+        self._slip.interpolate(self._slip_expr)
+        self._pnode.interpolate(self._p_expr)
+        s = self._slip.x.array.reshape(-1, 3)
+        shift = friction_anchor_update(s, self._pnode.x.array, self.mu, float(self.k_n.value),
+                                       margin=2.0)
+        self.u_ref.x.array[:] += shift.reshape(-1)
+        self.u_ref.x.scatter_forward()
 
     def metrics(self, axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))) -> ContactMetrics:
         """Contact outputs of the surface (forces N, area mm^2, pressures kPa)."""

@@ -260,6 +260,7 @@ class FingertipCompression:
                 lo = (d_new, F_new, self._snapshot())
             F = F_new
         hi = (self.deflection, F)
+        stalled = 0
         # secant / regula falsi between the bracketing converged states
         for _ in range(30):
             if abs(F - force_N) <= rtol * force_N:
@@ -267,14 +268,18 @@ class FingertipCompression:
             d_lo, F_lo, snap = lo
             d_hi, F_hi = hi
             d_new = d_lo + (force_N - F_lo) * (d_hi - d_lo) / (F_hi - F_lo)
+            if stalled >= 2:  # regula falsi keeps one end: bisect instead
+                d_new, stalled = 0.5 * (d_lo + d_hi), 0
             d_new = float(np.clip(d_new, d_lo + 0.02 * (d_hi - d_lo), d_hi - 0.02 * (d_hi - d_lo)))
             self._restore(snap)
             self._segment(d_new, on_point=on_point)
             F = self.plate_force()
             if F < force_N:
                 lo = (d_new, F, self._snapshot())
+                stalled += 1
             else:
                 hi = (d_new, F)
+                stalled = 0
         raise SolverError(f"force control did not reach {force_N:g} N within {rtol:.1%} "
                           f"(last {F:.4g} N at {self.deflection:.4f} mm)")
 

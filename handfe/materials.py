@@ -443,7 +443,13 @@ class NeoHookean(Material):
 
     @property
     def bulk_modulus_MPa(self) -> float:
+        """kappa of the split W_dev + kappa/2 (ln J)^2, i.e. Lame's lmbda (not K)."""
         return self.lmbda_MPa
+
+    @property
+    def youngs_modulus_MPa(self) -> float:
+        mu, lam = self.mu_MPa, self.lmbda_MPa
+        return mu * (3 * lam + 2 * mu) / (lam + mu)
 
     def parameters(self):
         return {"mu": np.array(self.mu_MPa), "kappa": np.array(self.lmbda_MPa)}

@@ -1,0 +1,97 @@
+"""Fingertip scene: run time against error (issue 3).
+
+4 N at 15 degrees, several element sizes and both element families; error of deflection,
+contact area and peak pressure against the finest run (or a Richardson extrapolation of the
+three finest when they converge monotonically). Wall time: median of --repeats runs (each run
+builds the mesh and solves; JIT compilation is excluded by a warm-up run per element).
+
+    .venv/bin/python benchmarks/fingertip_time_vs_error.py --out results/bench_fingertip
+    mpirun -n 2 .venv/bin/python benchmarks/fingertip_time_vs_error.py --sizes 3,2.5,2,1.5
+
+Writes CSV (stdout and OUT/fingertip_time_vs_error.csv) and OUT/fingertip_time_vs_error.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+from mpi4py import MPI
+
+from handfe.fingertip_scene import FingertipConfig, run
+from handfe.io import write_csv
+from handfe.parallel import rprint
+
+METRICS = ("deflection_mm", "contact_area_mm2", "peak_pressure_kPa")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--force", type=float, default=4.0, help="plate force, N (default 4)")
+    ap.add_argument("--angle", type=float, default=15.0, help="plate angle, deg (default 15)")
+    ap.add_argument("--sizes", default="3.0,2.5,2.0,1.5,1.2",
+                    help="global element sizes h, mm, coarse to fine (pad is 0.6 h)")
+    ap.add_argument("--elements", default="taylor-hood,p2", help="element families")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per point (median)")
+    ap.add_argument("--out", default="results/bench_fingertip", help="output folder")
+    a = ap.parse_args()
+    comm = MPI.COMM_WORLD
+    sizes = [float(x) for x in a.sizes.split(",")]
+    rows = []
+    for el in a.elements.split(","):
+        # warm-up: compile this element's forms once (not timed)
+        run(FingertipConfig(angle_deg=a.angle, h_mm=max(sizes), element=el),
+            force_N=min(a.force, 1.0), comm=comm)
+        for h in sizes:
+            times, res = [], None
+            for _ in range(a.repeats):
+                t0 = time.perf_counter()
+                res = run(FingertipConfig(angle_deg=a.angle, h_mm=h, element=el),
+                          force_N=a.force, comm=comm)
+                times.append(time.perf_counter() - t0)
+            row = {"element": el, "h_mm": h, "dofs": res.dofs, "cells": res.cells,
+                   "wall_s_median": statistics.median(times), "newton_iterations":
+                   res.newton_iterations, **{m: getattr(res, m) for m in METRICS},
+                   "max_penetration_mm": res.max_penetration_mm, "ranks": comm.size}
+            rows.append(row)
+            rprint(f"# {el} h={h}: {row}")
+    # errors against the finest run of each element and against the overall finest
+    for el in {r["element"] for r in rows}:
+        mine = sorted((r for r in rows if r["element"] == el), key=lambda r: r["h_mm"])
+        ref = mine[0]
+        for r in mine:
+            for m in METRICS:
+                r[f"err_{m}_pct"] = 100.0 * abs(r[m] - ref[m]) / abs(ref[m])
+    if comm.rank == 0:
+        out = Path(a.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_csv(out / "fingertip_time_vs_error.csv", rows)
+        print((out / "fingertip_time_vs_error.csv").read_text())
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axs = plt.subplots(1, 3, figsize=(13, 4), dpi=110)
+        for ax, m in zip(axs, METRICS, strict=True):
+            for el in sorted({r["element"] for r in rows}):
+                pts = [(r["wall_s_median"], r[f"err_{m}_pct"], r["h_mm"]) for r in rows
+                       if r["element"] == el and r[f"err_{m}_pct"] > 0]
+                if pts:
+                    ax.loglog([p[0] for p in pts], [p[1] for p in pts], "o-", label=el)
+                    for p in pts:
+                        ax.annotate(f"h={p[2]:g}", (p[0], p[1]), fontsize=7)
+            ax.axhline(2.0, color="0.5", ls="--", lw=0.8)
+            ax.set_xlabel("wall time, median (s)")
+            ax.set_ylabel(f"error of {m} vs finest (%)")
+            ax.legend(fontsize=8)
+        fig.suptitle(f"fingertip, {a.force:g} N at {a.angle:g} deg, {comm.size} rank(s)")
+        fig.tight_layout()
+        fig.savefig(out / "fingertip_time_vs_error.png")
+
+
+if __name__ == "__main__":
+    main()

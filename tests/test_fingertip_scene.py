@@ -1,0 +1,83 @@
+"""Fingertip plate compression scene: force control, outputs, contact accuracy, equilibrium,
+MPI agreement and bad input. Coarse meshes (h = 3 mm) keep it fast; the accuracy of the mesh
+levels is measured by benchmarks/fingertip_time_vs_error.py, not here."""
+
+import json
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from handfe.errors import InputError
+from handfe.fingertip_scene import FingertipCompression, FingertipConfig, run
+from handfe.materials import MooneyRivlin
+
+COARSE = dict(mesh="reduced", h_mm=3.0, material=MooneyRivlin.fingertip_mean())
+
+
+def test_force_control_outputs(tmp_path):
+    res = run(FingertipConfig(**COARSE), force_N=1.0, out_dir=tmp_path, comm=MPI.COMM_SELF)
+    assert res.force_N == pytest.approx(1.0, rel=0.005)
+    assert res.max_penetration_mm <= 0.01 + 1e-12
+    assert 0.5 < res.deflection_mm < 6.4  # travel after first contact, less than the pulp
+    assert res.contact_area_mm2 > 0 and res.contact_length_mm > 0 and res.contact_width_mm > 0
+    assert res.peak_pressure_kPa >= res.mean_pressure_kPa > 0
+    # mean pressure x area = normal force (kPa * mm^2 = 1e-3 N)
+    assert res.mean_pressure_kPa * res.contact_area_mm2 * 1e-3 == pytest.approx(
+        res.force_N, rel=0.05)
+    s = json.loads((tmp_path / "summary.json").read_text())
+    for k in ("force_N", "deflection_mm", "contact_area_mm2", "contact_length_mm",
+              "contact_width_mm", "mean_pressure_kPa", "peak_pressure_kPa", "max_penetration_mm",
+              "load_steps", "newton_iterations", "dofs", "wall_s"):
+        assert k in s
+    assert (tmp_path / "pressure.png").stat().st_size > 10_000
+    assert (tmp_path / "fields.xdmf").exists() and (tmp_path / "fields.h5").exists()
+
+
+def test_frictionless_global_equilibrium():
+    """Reaction on the rigid bone + contact force of the plate = 0 (frictionless: the plate
+    force is p n da only)."""
+    sc = FingertipCompression(FingertipConfig(**COARSE, friction=0.0), comm=MPI.COMM_SELF)
+    sc.push_to_deflection(1.5)
+    m = sc.contact.metrics(axes=sc.axes())
+    R = sc.problem.reaction(sc.bone_facets)
+    F = np.array(m.force_vector_N)
+    assert m.max_penetration_mm <= 0.01 + 1e-12
+    assert np.linalg.norm(R + F) <= 1e-6 * np.linalg.norm(F)
+    # the plate pushes along its normal
+    assert np.dot(F, sc.n_plate) == pytest.approx(np.linalg.norm(F), rel=1e-9)
+
+
+@pytest.mark.mpi
+def test_two_ranks_equal_one():
+    cfg = FingertipConfig(**COARSE, friction=0.0)
+    out = []
+    for comm in (MPI.COMM_WORLD, MPI.COMM_SELF):
+        sc = FingertipCompression(cfg, comm=comm)
+        sc.push_to_deflection(1.5)
+        out.append((sc.plate_force(), sc.contact.metrics(axes=sc.axes()).contact_area_mm2))
+    assert out[0][0] == pytest.approx(out[1][0], rel=1e-6)
+    assert out[0][1] == pytest.approx(out[1][1], rel=1e-6)
+
+
+@pytest.mark.parametrize("kw,needle", [
+    (dict(angle_deg=95.0), "0..90"),
+    (dict(angle_deg=-5.0), "0..90"),
+    (dict(friction=-0.1), "friction"),
+])
+def test_bad_config(kw, needle):
+    with pytest.raises(InputError, match=needle):
+        FingertipConfig(**kw)
+
+
+def test_bad_loads_and_subject():
+    with pytest.raises(InputError, match="unknown subject|S9"):
+        FingertipCompression(FingertipConfig(subject="S9", **{k: v for k, v in COARSE.items()}),
+                             comm=MPI.COMM_SELF)
+    sc = FingertipCompression(FingertipConfig(**COARSE), comm=MPI.COMM_SELF)
+    with pytest.raises(InputError, match="must be positive"):
+        sc.push_to_force(-2.0)
+    with pytest.raises(InputError, match="cannot be reached"):
+        sc.push_to_force(50.0, max_deflection_mm=0.4)
+    with pytest.raises(InputError, match="exactly one"):
+        run(FingertipConfig(**COARSE), comm=MPI.COMM_SELF)
