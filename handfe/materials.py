@@ -50,6 +50,13 @@ def _check_positive(name: str, value: float, law: str) -> None:
         raise InputError(f"{law}: {name} = {value!r} must be a positive finite number")
 
 
+def lame_from_E_nu(E_MPa: float, nu: float, law: str) -> tuple[float, float]:
+    """(mu, lmbda) in MPa from Young's modulus and Poisson's ratio, both validated."""
+    _check_positive("E_MPa", E_MPa, law)
+    _check_nu(nu, law)
+    return E_MPa / (2 * (1 + nu)), E_MPa * nu / ((1 + nu) * (1 - 2 * nu))
+
+
 def bulk_from_nu(mu0_MPa: float, nu: float) -> float:
     """Bulk modulus K = 2 mu0 (1 + nu) / (3 (1 - 2 nu)) in MPa (= 2/D1 of the Abaqus form)."""
     return 2.0 * mu0_MPa * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
@@ -418,9 +425,7 @@ class NeoHookean(Material):
 
     @classmethod
     def from_E_nu(cls, E_MPa: float, nu: float) -> NeoHookean:
-        _check_positive("E_MPa", E_MPa, "neo-hookean")
-        _check_nu(nu, "neo-hookean")
-        return cls(E_MPa / (2 * (1 + nu)), E_MPa * nu / ((1 + nu) * (1 - 2 * nu)))
+        return cls(*lame_from_E_nu(E_MPa, nu, "neo-hookean"))
 
     @classmethod
     def layer(cls, name: str) -> NeoHookean:
@@ -485,9 +490,7 @@ class StVenantKirchhoff(Material):
 
     @classmethod
     def from_E_nu(cls, E_MPa: float, nu: float) -> StVenantKirchhoff:
-        _check_positive("E_MPa", E_MPa, "st-venant-kirchhoff")
-        _check_nu(nu, "st-venant-kirchhoff")
-        return cls(E_MPa / (2 * (1 + nu)), E_MPa * nu / ((1 + nu) * (1 - 2 * nu)))
+        return cls(*lame_from_E_nu(E_MPa, nu, "st-venant-kirchhoff"))
 
     @classmethod
     def nail(cls) -> StVenantKirchhoff:
