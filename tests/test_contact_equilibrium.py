@@ -10,12 +10,13 @@ Contact force on the body: ``int (p n + t_T) da`` over the contact facets, assem
 ``RigidContact.terms`` (``ContactMetrics.force_vector_N`` is only the normal part and
 ``tangential_force_N`` only a magnitude).
 
-The obstacle force must be evaluated in the state the last Newton solve balanced. The
-library's ``solve`` loop does not leave such a state (see the two xfail tests and the report
-on issue 3): the final Uzawa update changes ``lambda_n`` after the last Newton solve, and
-``RigidContact.on_step`` moves the stick anchor to the converged displacement, which zeroes
-``t_T``. The consistent check therefore keeps the anchor of the last step and runs one more
-Newton solve with the updated multipliers before measuring.
+The obstacle force must be evaluated in the state the last Newton solve balanced. Since the
+fixes on issue 3, ``solve`` leaves the multipliers of that state (the penetration is checked
+before any Uzawa update: ``test_metrics_after_solve_balance_reaction_frictionless``), but
+``RigidContact.on_step`` still return-maps the nodal stick anchor after the last step, which
+changes the friction traction at quadrature points next to stuck nodes (strict xfail
+``test_metrics_after_solve_report_friction_force``). The exact check therefore keeps the anchor
+of the last step and runs one more Newton solve before measuring.
 """
 
 from __future__ import annotations
