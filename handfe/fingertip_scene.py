@@ -110,7 +110,6 @@ class FingertipCompression:
         from handfe import contact as C
         from handfe.contact_problem import RigidContact
         from handfe.fingertip import build_fingertip_mesh, fingertip_geometry
-        from handfe.materials import StVenantKirchhoff
         from handfe.solver import Discretisation, HyperelasticProblem
 
         self.cfg = cfg
@@ -134,10 +133,8 @@ class FingertipCompression:
         # the nail as a near-linear elastic plate (small strains): neo-Hookean with E, nu = 0.3
         if "nail" in tags and self.fm.cells_per_tag.get("nail", 1) > 0:
             mats[tags["nail"]] = NeoHookean.from_E_nu(cfg.nail_E_MPa, 0.3)
-        del StVenantKirchhoff
         self.problem = HyperelasticProblem(self.fm.mesh, mats, cell_tags=self.fm.cell_tags,
                                            disc=Discretisation(cfg.element))
-        fdim = 2
         self.bone_facets = self.fm.facet_tags.find(tags["bone"])
         self.problem.fix(self.bone_facets)
         self.plate = C.plate(cfg.angle_deg)
@@ -146,7 +143,6 @@ class FingertipCompression:
                                     mu=cfg.friction, penalty_factor=cfg.penalty_factor,
                                     penetration_tol_mm=cfg.penetration_tol_mm,
                                     gap_tol_mm=cfg.gap_tol_mm, E_eff_MPa=pulp.youngs_modulus_MPa)
-        del fdim
         # first contact: the plate plane through the lowest pad point along n
         self.g0 = self._initial_gap()
         self.deflection = 0.0
