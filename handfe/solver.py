@@ -32,7 +32,8 @@ from petsc4py import PETSc
 from handfe.errors import InputError, SolverError
 from handfe.materials import BoundMaterial, Material
 
-ELEMENTS = ("taylor-hood", "p2", "p1")
+ELEMENTS = ("taylor-hood", "p2", "p1", "p1-p0")
+MIXED_ELEMENTS = ("taylor-hood", "p1-p0")
 _prefix_counter = itertools.count()
 
 
@@ -41,6 +42,13 @@ class Discretisation:
     """Element choice and quadrature degree.
 
     ``taylor-hood``: P2 displacement + P1 pressure (default; locking-free for nu -> 0.5);
+    ``p1-p0``: P1 displacement + piecewise-constant (DG0) pressure in the same mixed u-p form,
+    the hybrid linear tetrahedron of the reference model (Abaqus C3D4H-like). Cheap, exact for
+    homogeneous states and usable with ``incompressible=True``; but on tetrahedra det F of a P1
+    field is constant per cell, so for a finite bulk modulus it gives the same displacements
+    as ``p1`` and locks just as much (Cook's membrane, nu = 0.499, n = 4/8/16: 2.63/2.77/3.16
+    mm, the p1 numbers, vs 8.11 converged). Use it where bending of near-incompressible tissue
+    does not dominate, and check against taylor-hood;
     ``p2`` / ``p1``: displacement only. The quadrature degree must be set by hand: UFL's estimate
     for Ogden forms is ~190 and makes assembly many times slower than the linear solve. Default 4
     for quadratic displacement, 2 for linear (verified by the convergence tests)."""
@@ -57,11 +65,17 @@ class Discretisation:
 
     @property
     def mixed(self) -> bool:
-        return self.element == "taylor-hood"
+        return self.element in MIXED_ELEMENTS
 
     @property
     def degree(self) -> int:
-        return 1 if self.element == "p1" else 2
+        """Polynomial degree of the displacement."""
+        return 1 if self.element in ("p1", "p1-p0") else 2
+
+    @property
+    def pressure_element(self) -> tuple[str, int] | None:
+        """(family, degree) of the pressure of a mixed element, None otherwise."""
+        return {"taylor-hood": ("CG", 1), "p1-p0": ("DG", 0)}.get(self.element)
 
     @property
     def qdeg(self) -> int:
@@ -108,14 +122,15 @@ class HyperelasticProblem:
         self.disc = disc or Discretisation()
         self.incompressible = incompressible
         if incompressible and not self.disc.mixed:
-            raise InputError("incompressible=True needs the mixed taylor-hood element")
+            raise InputError("incompressible=True needs a mixed element (taylor-hood or p1-p0)")
         mats = {None: material} if isinstance(material, Material) else dict(material)
         if len(mats) > 1 and cell_tags is None:
             raise InputError("several materials need cell_tags")
         cell = mesh.ufl_cell()
         Ve = ufl.VectorElement("CG", cell, self.disc.degree)
         if self.disc.mixed:
-            Qe = ufl.FiniteElement("CG", cell, 1)
+            family, pdeg = self.disc.pressure_element
+            Qe = ufl.FiniteElement(family, cell, pdeg)
             self.W = fem.FunctionSpace(mesh, ufl.MixedElement([Ve, Qe]))
         else:
             self.W = fem.FunctionSpace(mesh, Ve)

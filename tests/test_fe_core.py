@@ -166,3 +166,54 @@ def test_assign_material_does_not_recompile():
     prob.assign_material(Ogden.subcutaneous())
     assert prob.compiled() == (L, a)
     assert ufl is not None
+
+
+# -- p1-p0: P1 displacement + DG0 pressure (hybrid linear tet) ------------------------------------
+@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("incompressible", [True, False], ids=["inc", "nu049"])
+def test_p1p0_cube_matches_closed_form(mode, incompressible):
+    """Homogeneous deformations lie in the P1 space: the hybrid linear tet reproduces the closed
+    form exactly, also exactly incompressible (pure P1 cannot be used there)."""
+    mat = MooneyRivlin.fingertip_mean()
+    lams = [0.7, 1.0, 1.3]
+    disc = Discretisation("p1-p0")
+    assert disc.mixed and disc.degree == 1 and disc.qdeg == 2
+    fe = cube_stress_curve(mat, mode, lams, incompressible=incompressible, disc=disc,
+                           comm=MPI.COMM_SELF, n=2)
+    cf = np.array([homogeneous(mat, mode, x, incompressible=incompressible)[0] for x in lams])
+    assert np.max(np.abs(fe - cf)) <= 1e-6 * np.max(np.abs(cf))
+
+
+def test_p1p0_near_incompressible_distorted_patch():
+    """Patch test: a cube with distorted interior nodes, neo-Hookean nu = 0.4999, uniaxial
+    stretch 1.2 on x = 1 with symmetry planes. The exact solution is homogeneous: the reaction is
+    the closed form, J is 1 to the compressibility, and the DG0 pressure is uniform."""
+    from dolfinx import mesh as dmesh
+
+    mat = NeoHookean.from_E_nu(0.05, 0.4999)
+    msh = dmesh.create_unit_cube(MPI.COMM_SELF, 3, 3, 3, dmesh.CellType.tetrahedron)
+    x = msh.geometry.x
+    inner = np.all((x > 1e-8) & (x < 1 - 1e-8), axis=1)
+    rng = np.random.default_rng(3)
+    x[inner] += rng.uniform(-0.08, 0.08, size=(inner.sum(), 3))
+    prob = HyperelasticProblem(msh, mat, disc=Discretisation("p1-p0"))
+    fdim = 2
+    for a in range(3):
+        prob.fix(dmesh.locate_entities_boundary(msh, fdim, lambda p, a=a: np.isclose(p[a], 0)),
+                 components=(a,))
+    right = dmesh.locate_entities_boundary(msh, fdim, lambda p: np.isclose(p[0], 1.0))
+    c = prob.fix(right, components=(0,))
+
+    def set_load(t):
+        c.value = 0.2 * t
+
+    res = solve(prob, set_load, stepping=LoadStepping(initial=0.5))
+    assert res.converged
+    P11 = prob.reaction(right)[0]
+    cf = homogeneous(mat, "uniaxial", 1.2)[0]
+    assert P11 == pytest.approx(cf, rel=1e-6)
+    p_dofs = prob.W.sub(1).collapse()[1]
+    p = prob.w.x.array[p_dofs]
+    assert np.ptp(p) <= 1e-6 * np.max(np.abs(p))
+    J = fem.form(ufl.det(prob.F) * ufl.dx)
+    assert fem.assemble_scalar(J) == pytest.approx(1.0, abs=2e-3)
