@@ -63,8 +63,10 @@ ANTHROPOMETRY_CSV = REFERENCE_DIR / "fingertip_anthropometry.csv"
 CELL_TAGS = {"pulp": 1, "skin": 2, "subcutaneous": 3, "nail": 4}
 FACET_TAGS = {"pad": 11, "dorsal": 12, "nail_outer": 13, "bone": 14, "proximal": 15}
 
-# global element size / size on the pad (mm) per level
-MESH_LEVELS = {"reduced": (2.5, 1.5), "default": (1.5, 0.9), "fine": (1.0, 0.6)}
+# global element size / size on the pad (mm) per level. "coarse" is for fast end-to-end tests of
+# other modules (a 1-2 N solve in well under a minute); it is NOT validated (docs/contact.md).
+MESH_LEVELS = {"coarse": (3.5, 2.0), "reduced": (2.5, 1.5), "default": (1.5, 0.9),
+               "fine": (1.0, 0.6)}
 PAD_SIZE_RATIO = 0.6  # pad size = ratio * global size when h_mm is given
 MIN_TISSUE_OVER_BONE_MM = 0.3
 MIN_NAIL_MM = 0.25
@@ -477,9 +479,9 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
                          skin_thickness_mm: float = 1.0, comm=None) -> FingertipMesh:
     """Mesh the fingertip with gmsh (rank 0) and distribute it over ``comm``.
 
-    level: reduced | default | fine (global/pad sizes in MESH_LEVELS, mm); h_mm overrides the
-    level (pad size 0.6 h_mm). layered: skin (skin_thickness_mm) over subcutaneous tissue
-    instead of one "pulp" volume."""
+    level: coarse | reduced | default | fine (global/pad sizes in MESH_LEVELS, mm); h_mm
+    overrides the level (pad size 0.6 h_mm). layered: skin (skin_thickness_mm) over
+    subcutaneous tissue instead of one "pulp" volume."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD if comm is None else comm

@@ -17,7 +17,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("calibrate", help="fit the fingertip pulp material to the 15-degree data",
                        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", choices=("fingertip",), help="what to calibrate")
-    p.add_argument("--mesh", choices=("reduced", "default", "fine"), default="reduced",
+    p.add_argument("--mesh", choices=("coarse", "reduced", "default", "fine"), default="reduced",
                    help="mesh level of the fitting solves (default reduced)")
     p.add_argument("--h", type=float, default=None, metavar="MM", help="element size (mm)")
     p.add_argument("--max-sweeps", type=int, default=10,

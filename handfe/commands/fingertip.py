@@ -36,12 +36,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--force", type=float, help="target plate force, N (reached to 0.5 %%)")
     g.add_argument("--indent", type=float, help="plate travel after first contact, mm "
                    "(displacement control)")
-    p.add_argument("--mesh", choices=("reduced", "default", "fine"), default="default",
-                   help="mesh level (default: default; see README for its accuracy and cost)")
+    p.add_argument("--mesh", choices=("coarse", "reduced", "default", "fine"), default="default",
+                   help="mesh level (default: default; see README for its accuracy and cost; "
+                        "coarse is for fast tests only, not validated)")
     p.add_argument("--h", type=float, default=None, metavar="MM",
                    help="global element size in mm (overrides --mesh; pad is 0.6x finer)")
-    p.add_argument("--element", choices=("taylor-hood", "p2", "p1"), default="taylor-hood",
-                   help="FE element (default taylor-hood P2-P1 mixed; p1 locks, for comparison)")
+    p.add_argument("--element", choices=("taylor-hood", "p1-p0", "p2", "p1"),
+                   default="taylor-hood",
+                   help="FE element (default taylor-hood P2-P1 mixed; p1-p0 = P1 + DG0 pressure, "
+                        "cheap; p1 locks, for comparison)")
     p.add_argument("--subject", default="mean",
                    help="anthropometry row: mean (default) or S1..S5")
     p.add_argument("--material", default=None, metavar="NAME",
