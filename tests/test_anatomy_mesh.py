@@ -36,8 +36,11 @@ def cylindrical(subject):
 
 @pytest.fixture(scope="module")
 def pinch(subject):
+    """Partial hand without the far-field savings (carpus and wrist kept, uniform sizes); the
+    default trimmed pinch is tested in tests/test_anatomy_partial.py."""
     return build_hand(subject, Pose.from_toml(POSES["precision"]),
-                      digits="thumb,index,middle", level="reduced", comm=MPI.COMM_SELF)
+                      digits="thumb,index,middle", level="reduced", comm=MPI.COMM_SELF,
+                      skip_far=False)
 
 
 @pytest.fixture(scope="module")
@@ -46,13 +49,15 @@ def spherical(subject):
                       comm=MPI.COMM_SELF)
 
 
-def _check_tags(model, digits):
+def _check_tags(model, digits, wrist=True):
+    """Every tag present and non-empty (the wrist face only if ``wrist``: a trimmed partial
+    hand has its proximal cut tagged palm_cut instead)."""
     tags, _ = tag_names(digits)
     cv = set(np.unique(model.cell_tags.values))
     assert cv == {CELL_TAGS["skin"], CELL_TAGS["subcutaneous"], CELL_TAGS["nail"]}
     fv = set(np.unique(model.facet_tags.values))
     for name, tag in tags.items():
-        if name.startswith("skin_") or name == "wrist":
+        if name.startswith("skin_") or (name == "wrist" and wrist):
             assert tag in fv, name
     for b in model.bones:
         assert model.tags[f"bone_{b}"] in fv, b
@@ -86,6 +91,7 @@ def test_whole_hand_cylindrical(cylindrical):
     m = cylindrical
     assert m.digits == DIGITS
     assert len(m.bones) == 27
+    assert m.quality["skipped"]["digits"] == [] and m.quality["skipped"]["bones"] == []
     _check_tags(m, DIGITS)
     _check_quality(m)
     q = m.quality
@@ -118,6 +124,8 @@ def test_spherical_quality(spherical):
 
 
 def test_pinch_only_mesh(pinch, cylindrical):
+    """skip_far=False: only the dropped rays and the palm part carrying them are left out
+    (70.7k vs 107k tets); the default (trimmed) pinch is ~0.37x, tests/test_anatomy_partial.py."""
     digits = ("thumb", "index", "middle")
     assert pinch.digits == digits
     _check_tags(pinch, digits)
@@ -126,6 +134,10 @@ def test_pinch_only_mesh(pinch, cylindrical):
     assert not any(b.startswith(("ring", "little")) for b in pinch.bones)
     assert pinch.quality["cells"] < 0.75 * cylindrical.quality["cells"]
     assert pinch.quality["skin_area_mm2"]["ring"] == 0.0
+    sk = pinch.quality["skipped"]
+    assert sk["digits"] == ["ring", "little"]
+    assert set(sk["bones"]) == set(pinch.skeleton.bones) - set(pinch.bones)
+    assert {"scaphoid", "lunate", "trapezium", "capitate"} <= set(pinch.bones)
     # ligaments and insertions restricted to the kept bones
     kept = set(pinch.bones)
     assert all(lg["bone_a"] in kept and lg["bone_b"] in kept for lg in pinch.ligaments)

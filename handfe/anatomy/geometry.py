@@ -24,6 +24,9 @@ from handfe.errors import InputError
 from handfe.kinematics import DIGITS
 
 FINGERS = ("index", "middle", "ring", "little")
+# trimmed partial hands: the proximal cut starts this far proximal to the most proximal CMC
+# centre of the kept digits (then moves further if a kept metacarpal needs it)
+TRIM_MARGIN_MM = 4.0
 
 
 @dataclass
@@ -123,9 +126,14 @@ def _primitive(gmsh, p: Primitive, shrink: float, inner: bool) -> list[tuple[int
     raise ValueError(p.kind)
 
 
-def cut_planes(skel: Skeleton, digits: tuple[str, ...]) -> list[tuple[np.ndarray, np.ndarray]]:
+def cut_planes(skel: Skeleton, digits: tuple[str, ...], trim_carpus: bool = False
+               ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Planes that cut the palm between kept and dropped fingers (world frame): (point, normal
-    towards the removed side)."""
+    towards the removed side). With ``trim_carpus`` also a plane normal to the hand's y axis,
+    ``TRIM_MARGIN_MM`` proximal to the most proximal CMC centre of the kept digits: it removes
+    the carpus and the wrist stub (every carpal centre lies proximal to it, so
+    :func:`kept_bones` drops the carpals; it moves the plane further only if a kept metacarpal
+    base needs the clearance)."""
     fingers = [d for d in FINGERS if d in digits]
     if not fingers:
         raise InputError(f"digits={','.join(digits)}: at least one of index, middle, ring, "
@@ -153,6 +161,9 @@ def cut_planes(skel: Skeleton, digits: tuple[str, ...]) -> list[tuple[np.ndarray
         if np.dot(skel.joint_centres[f"{removed}_mcp"] - top, n) < 0:
             n = -n
         planes.append((top, n))
+    if trim_carpus:
+        y0 = min(H.inverse_apply(skel.joint_centres[f"{d}_cmc"])[1] for d in digits)
+        planes.append((H.apply(np.array([0.0, y0 - TRIM_MARGIN_MM, 0.0])), -H.R[:, 1]))
     return planes
 
 
@@ -221,8 +232,10 @@ def _envelope(gmsh, skel: Skeleton, groups: list[list[Primitive]], shrink: float
     return v
 
 
-def build_occ(gmsh, skel: Skeleton, digits: tuple[str, ...]) -> OccHand:
-    """Build the OCC model of the selected digits (+ the palm part carrying them).
+def build_occ(gmsh, skel: Skeleton, digits: tuple[str, ...], trim_carpus: bool = False
+              ) -> OccHand:
+    """Build the OCC model of the selected digits (+ the palm part carrying them; with
+    ``trim_carpus`` (partial hands only) without the carpus and the wrist stub).
 
     No boolean touches the bones: the subcutaneous volume is made from the inner envelope's
     shell with one hole per bone shell, and the skin from the outer shell with the inner shell
@@ -231,7 +244,7 @@ def build_occ(gmsh, skel: Skeleton, digits: tuple[str, ...]) -> OccHand:
     occ = gmsh.model.occ
     t = skel.subject.hand.skin_thickness_mm
     full = tuple(d for d in DIGITS if d in digits) == DIGITS
-    planes = [] if full else cut_planes(skel, digits)
+    planes = [] if full else cut_planes(skel, digits, trim_carpus)
     bones = kept_bones(skel, digits, planes)  # may move the planes clear of carpal bones
     groups = []
     for d in DIGITS:

@@ -2,7 +2,9 @@
 
 Tags (values of the dolfinx meshtags; names in ``HandModel.tags``):
   cells:  1 skin, 2 subcutaneous, 3 nail
-  facets: 90 wrist cut face, 91 palm cut face (partial hands), 201.. one per bone surface
+  facets: 90 wrist cut face (absent for a trimmed partial hand, ``skip_far``), 91 palm cut
+          faces (partial hands: between kept and dropped rays, and with ``skip_far`` the cut
+          through the carpus), 201.. one per bone surface
           (order of anatomy/bones.csv), and the outer skin surface split by region and phalanx:
           100 + 10 * region + phalanx with region thumb 1, index 2, middle 3, ring 4, little 5,
           palm 6 and phalanx proximal 1, middle 2, distal 3 (0 for the palm), e.g. 123 =
@@ -24,11 +26,20 @@ from handfe.anatomy.tables import bones as bone_table
 from handfe.errors import InputError
 from handfe.kinematics import DIGITS, Pose
 
-LEVELS = {  # mm: global size, size on the fingertip pads, size on the palm
-    "reduced": {"h": 3.0, "h_pad": 2.0, "h_palm": 3.0},
-    "default": {"h": 2.0, "h_pad": 1.0, "h_palm": 1.6},
-    "fine": {"h": 1.4, "h_pad": 0.6, "h_palm": 1.1},
+LEVELS = {  # mm: global size, size on the fingertip pads, size on the palm, size far from the
+    # kept digits of a partial hand (proximal palm, carpus, wrist)
+    "coarse": {"h": 4.7, "h_pad": 3.0, "h_palm": 4.7, "h_far": 5.0},
+    "reduced": {"h": 3.0, "h_pad": 2.0, "h_palm": 3.0, "h_far": 5.0},
+    "default": {"h": 2.0, "h_pad": 1.0, "h_palm": 1.6, "h_far": 4.0},
+    "fine": {"h": 1.4, "h_pad": 0.6, "h_palm": 1.1, "h_far": 2.8},
 }
+# whole-hand cell counts of S01 (neutral pose, `handfe anatomy --mesh LEVEL`), the basis of the
+# saving reported for partial hands; fine: default scaled by (2.0 / 1.4)^3, not measured
+WHOLE_HAND_CELLS_S01 = {"coarse": 40000, "reduced": 105868, "default": 368729,
+                        "fine": 1075000}
+S01_HAND_BOX_MM3 = 189.0 * 87.0 * 33.0
+FAR_TRANSITION_MM = 10.0  # partial hands: distance over which the size grows from h to h_far
+FINE_PHALANGES = ("middle", "distal")  # partial hands: kept at h (the pads at h_pad)
 CELL_TAGS = {"skin": 1, "subcutaneous": 2, "nail": 3}
 REGIONS = ("thumb", "index", "middle", "ring", "little", "palm")
 PHALANGES = ("proximal", "middle", "distal")
@@ -131,42 +142,81 @@ def parse_digits(digits: str | tuple[str, ...] | list[str] | None) -> tuple[str,
     return tuple(d for d in DIGITS if d in items)
 
 
-def _size_fields(gmsh, skel: Skeleton, digits: tuple[str, ...], lv: dict) -> None:
+def _ball(gmsh, c: np.ndarray, radius: float, v_in: float, v_out: float,
+          thickness: float) -> int:
     fld = gmsh.model.mesh.field
+    f = fld.add("Ball")
+    fld.setNumber(f, "XCenter", float(c[0]))
+    fld.setNumber(f, "YCenter", float(c[1]))
+    fld.setNumber(f, "ZCenter", float(c[2]))
+    fld.setNumber(f, "Radius", float(radius))
+    fld.setNumber(f, "Thickness", float(thickness))
+    fld.setNumber(f, "VIn", float(v_in))
+    fld.setNumber(f, "VOut", float(v_out))
+    return f
+
+
+def digit_balls(skel: Skeleton, digits: tuple[str, ...],
+                phalanges: tuple[str, ...] = PHALANGES, mcp: bool = True
+                ) -> list[tuple[np.ndarray, float]]:
+    """Balls (centre, radius; mm, world frame) covering the soft tissue of the given digits'
+    phalanges and joints (the primitives of ``skel.digit_primitives`` whose phalanx is in
+    ``phalanges``; a joint belongs to its distal segment; ``mcp``: always the MCP joint);
+    long frustums are covered by several balls."""
+    out = []
+    for d in digits:
+        for i in skel.digit_primitives[d]:
+            p = skel.primitives[i]
+            if p.phalanx not in phalanges and not (mcp and p.name == f"{d}_mcp_joint"):
+                continue
+            if p.kind in ("cone", "ccone"):
+                L = p.dims[0]
+                r = max(p.dims[1:3]) * (max(1.0, p.dims[3]) if p.kind == "cone" else 1.0)
+                n = max(1, int(np.ceil(L / (2.0 * r))))
+                for k in range(n):
+                    c = p.frame.apply(np.array([0.0, (k + 0.5) * L / n, 0.0]))
+                    out.append((c, float(np.hypot(0.5 * L / n, r)) + 1.0))
+            elif p.kind == "sphere":
+                out.append((p.frame.o, float(p.dims[0]) + 1.0))
+            else:  # ellipsoid
+                out.append((p.frame.o, float(max(p.dims)) + 1.0))
+    return out
+
+
+def _size_fields(gmsh, skel: Skeleton, digits: tuple[str, ...], lv: dict,
+                 palm_contact: bool, far: bool) -> None:
+    """Background mesh size: ``h_pad`` on the kept fingertip pads, ``h_palm`` on the palm
+    (if it takes part in contact), ``h`` elsewhere; with ``far``, ``h`` only on the kept
+    digits' middle and distal segments and MCP joints, (h + h_far) / 2 on their proximal
+    phalanges, growing over ``FAR_TRANSITION_MM`` to ``h_far`` in the rest (palm, thenar)."""
+    h_out = lv["h_far"] if far else lv["h"]
     ids = []
     for d in digits:
         tip = [p for p in skel.primitives if p.name == f"{d}_tip"][0]
         c = tip.frame.apply(np.array([0.0, 0.0, 0.5 * tip.dims[2]]))
-        f = fld.add("Ball")
-        fld.setNumber(f, "XCenter", c[0])
-        fld.setNumber(f, "YCenter", c[1])
-        fld.setNumber(f, "ZCenter", c[2])
-        fld.setNumber(f, "Radius", 1.4 * tip.dims[1])
-        fld.setNumber(f, "Thickness", 6.0)
-        fld.setNumber(f, "VIn", lv["h_pad"])
-        fld.setNumber(f, "VOut", lv["h"])
-        ids.append(f)
-    H = skel.hand_frame
-    ht = skel.subject.hand.hand_thickness_mm
-    mcp = np.mean([H.inverse_apply(skel.joint_centres[f"{f}_mcp"]) for f in FINGERS
-                   if f in digits], axis=0)
-    c = H.apply(np.array([mcp[0], 0.55 * mcp[1], 0.5 * ht]))
-    f = fld.add("Ball")
-    fld.setNumber(f, "XCenter", c[0])
-    fld.setNumber(f, "YCenter", c[1])
-    fld.setNumber(f, "ZCenter", c[2])
-    fld.setNumber(f, "Radius", 0.4 * mcp[1])
-    fld.setNumber(f, "Thickness", 10.0)
-    fld.setNumber(f, "VIn", lv["h_palm"])
-    fld.setNumber(f, "VOut", lv["h"])
-    ids.append(f)
+        ids.append(_ball(gmsh, c, 1.4 * tip.dims[1], lv["h_pad"], h_out, 6.0))
+    if far:
+        for c, r in digit_balls(skel, digits, FINE_PHALANGES):
+            ids.append(_ball(gmsh, c, r, lv["h"], lv["h_far"], FAR_TRANSITION_MM))
+        # proximal phalanges in between: a thin subcutaneous layer under h_far makes slivers
+        h_mid = 0.5 * (lv["h"] + lv["h_far"])
+        for c, r in digit_balls(skel, digits, ("proximal",), mcp=False):
+            ids.append(_ball(gmsh, c, r, h_mid, lv["h_far"], FAR_TRANSITION_MM))
+    if palm_contact:
+        H = skel.hand_frame
+        ht = skel.subject.hand.hand_thickness_mm
+        mcp = np.mean([H.inverse_apply(skel.joint_centres[f"{f}_mcp"]) for f in FINGERS
+                       if f in digits], axis=0)
+        c = H.apply(np.array([mcp[0], 0.55 * mcp[1], 0.5 * ht]))
+        ids.append(_ball(gmsh, c, 0.4 * mcp[1], lv["h_palm"], h_out, 10.0))
+    fld = gmsh.model.mesh.field
     m = fld.add("Min")
     fld.setNumbers(m, "FieldsList", ids)
     fld.setAsBackgroundMesh(m)
     gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
     gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
-    gmsh.option.setNumber("Mesh.MeshSizeMax", lv["h"])
+    gmsh.option.setNumber("Mesh.MeshSizeMax", h_out)
     gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * lv["h_pad"])
 
 
@@ -206,11 +256,12 @@ def _tet_quality(X: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, float]:
     return q, min_dih
 
 
-def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str) -> dict:
+def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str,
+                skip_far: bool = False) -> dict:
     """Build geometry, mesh and physical groups in the current gmsh model; return the
     quality report and the outer surface for rendering."""
     t0 = time.perf_counter()
-    occ_hand = build_occ(gmsh, skel, digits)
+    occ_hand = build_occ(gmsh, skel, digits, trim_carpus=skip_far)
     model = gmsh.model
     model.addPhysicalGroup(3, occ_hand.skin, CELL_TAGS["skin"])
     model.setPhysicalName(3, CELL_TAGS["skin"], "skin")
@@ -228,16 +279,29 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str) -> di
         tag = BONE_TAG0 + order.index(name)
         model.addPhysicalGroup(2, surfs, tag)
         model.setPhysicalName(2, tag, f"bone_{name}")
-    _size_fields(gmsh, skel, digits, LEVELS[level])
+    lv = dict(LEVELS[level])
+    _size_fields(gmsh, skel, digits, lv, palm_contact=not skip_far, far=skip_far)
     t1 = time.perf_counter()
     gmsh.option.setNumber("Mesh.Optimize", 1)
     gmsh.option.setNumber("Mesh.Algorithm3D", ALGORITHM_3D)
-    model.mesh.generate(3)
+    try:
+        model.mesh.generate(3)
+    except Exception:
+        if not skip_far or lv["h_far"] <= lv["h"]:
+            raise
+        # the coarse far-field surface mesh can make the skin's outer and inner triangles
+        # intersect (a 1.2 mm layer under 5 mm triangles at tight curvature): retry at h
+        model.mesh.clear()
+        lv["h_far"] = lv["h"]
+        _size_fields(gmsh, skel, digits, lv, palm_contact=False, far=True)
+        model.mesh.generate(3)
     for method in EXTRA_OPTIMIZE:
         model.mesh.optimize(method)
     t2 = time.perf_counter()
     # --- quality report from the gmsh mesh
     node_tags, coords, _ = model.mesh.getNodes()
+    if len(node_tags) == 0:
+        raise RuntimeError("gmsh returned an empty mesh")
     X = np.zeros((int(node_tags.max()) + 1, 3))
     X[node_tags] = coords.reshape(-1, 3)
     boxes = nail_boxes(skel, digits)
@@ -281,7 +345,7 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str) -> di
     surf = SurfaceData(X[used], np.searchsorted(used, tris), codes)
     quality = {
         "level": level, "digits": list(digits), "pose": skel.pose.source,
-        "mesh_sizes_mm": LEVELS[level],
+        "mesh_sizes_mm": lv,
         "cells": int(len(tets)), "vertices": int(len(node_tags)),
         "quality_measure": "radius ratio 3*r_in/r_circ (1 = regular tetrahedron)",
         "min_quality": float(q.min()), "mean_quality": float(q.mean()),
@@ -294,11 +358,53 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str) -> di
         "skin_area_by_tag_mm2": area_code,
         "skin_thickness_mm": thick,
         "bones": list(occ_hand.bones),
+        "skipped": skipped_report(skel, digits, level, occ_hand.bones, int(len(tets)), skip_far,
+                                  lv["h_far"]),
         "timings_s": {**{k: round(v, 2) for k, v in occ_hand.timings_s.items()},
                       "mesh_generate": round(t2 - t1, 2)},
         "meshing_time_s": round(t2 - t0, 2),
     }
     return {"quality": quality, "surface": surf}
+
+
+def whole_hand_cells_estimate(skel: Skeleton, level: str) -> int:
+    """Cell count of the whole hand of this subject at ``level``, estimated from the measured
+    S01 counts (``WHOLE_HAND_CELLS_S01``, neutral pose) scaled by hand length x breadth x
+    thickness relative to S01 (the posture changes the count by ~1 %)."""
+    h = skel.subject.hand
+    scale = (h.hand_length_mm * h.hand_breadth_mm * h.hand_thickness_mm) / S01_HAND_BOX_MM3
+    return int(round(WHOLE_HAND_CELLS_S01[level] * scale))
+
+
+def skipped_report(skel: Skeleton, digits: tuple[str, ...], level: str, kept: tuple[str, ...],
+                   cells: int, skip_far: bool, h_far: float) -> dict:
+    """What a partial hand leaves out and what it saves (``quality["skipped"]``)."""
+    dropped_digits = [d for d in DIGITS if d not in digits]
+    dropped_bones = [b for b in skel.bones if b not in kept]
+    whole = whole_hand_cells_estimate(skel, level)
+    regions = []
+    if dropped_digits:
+        regions.append(f"digits {', '.join(dropped_digits)} and the palm part carrying them "
+                       "(cut face tag 91)")
+    if skip_far:
+        h = LEVELS[level]["h"]
+        regions += ["carpus and wrist stub proximal to the kept metacarpal bases (cut face "
+                    "tag 91; no wrist face 90)"]
+        regions += ([f"coarse mesh (h_far = {h_far} mm instead of h = {h} mm) away from the "
+                     "kept digits' middle/distal segments and MCP joints, no palm refinement"]
+                    if h_far > h else ["no palm refinement (meshing at h_far failed: retried "
+                                       f"at h = {h} mm)"])
+    return {
+        "digits": dropped_digits,
+        "bones": dropped_bones,
+        "regions": regions,
+        "cells": cells,
+        "cells_whole_hand_estimate": whole if dropped_digits else cells,
+        "cells_saved_estimate": max(0, whole - cells) if dropped_digits else 0,
+        "fraction_of_whole_hand": round(cells / whole, 3) if dropped_digits else 1.0,
+        "estimate": "whole-hand count at the same level: measured S01 count (neutral pose) "
+                    "scaled by hand length x breadth x thickness",
+    }
 
 
 def _skin_thickness(gmsh, skel, occ_hand, X, tris, digits, n_max: int = 120) -> dict:
@@ -410,8 +516,16 @@ def _point_triangles(x: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.nda
 
 def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
                digits: str | tuple[str, ...] | None = None, level: str = "reduced",
-               comm: MPI.Comm = MPI.COMM_WORLD) -> HandModel:
-    """Posed, meshed hand (gmsh on rank 0, mesh distributed over ``comm``)."""
+               comm: MPI.Comm = MPI.COMM_WORLD, skip_far: bool | None = None) -> HandModel:
+    """Posed, meshed hand (gmsh on rank 0, mesh distributed over ``comm``).
+
+    ``digits``: the digits to mesh (default all); a partial hand keeps the palm part carrying
+    them. ``skip_far`` (partial hands only; default True for a partial hand, False for the
+    whole hand): also cut away the carpus and the wrist stub a few mm proximal to the kept
+    metacarpal bases (the carpals are dropped; the cut face is tagged 91 like the side cuts,
+    and there is no wrist face 90), mesh at ``h_far`` away from the kept digits' middle and
+    distal segments and do not refine the palm.
+    ``quality["skipped"]`` lists the dropped digits and bones and the cells saved."""
     import dolfinx.fem  # noqa: F401  (import dolfinx fully before dolfinx.io: circular import)
     import gmsh
     from dolfinx import mesh as dmesh
@@ -420,6 +534,12 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
     if level not in LEVELS:
         raise InputError(f"mesh level '{level}': choose from {', '.join(LEVELS)}")
     digits = parse_digits(digits)
+    partial = digits != DIGITS
+    if skip_far is None:
+        skip_far = partial
+    elif skip_far and not partial:
+        raise InputError("skip_far needs a partial hand (digits=...): the whole hand keeps "
+                         "its carpus, wrist and palm refinement")
     pose = pose or Pose.neutral()
     skel = build_skeleton(subject, pose)
     check_bones(skel)
@@ -432,7 +552,7 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("hand")
         try:
-            result = _mesh_rank0(gmsh, skel, digits, level)
+            result = _mesh_rank0(gmsh, skel, digits, level, skip_far)
         except InputError as exc:
             error = str(exc)
         except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
