@@ -3,7 +3,11 @@
 4 N at 15 degrees, several element sizes and both element families; error of deflection,
 contact area and peak pressure against the finest run (or a Richardson extrapolation of the
 three finest when they converge monotonically). Wall time: median of --repeats runs (each run
-builds the mesh and solves; JIT compilation is excluded by a warm-up run per element).
+builds the mesh and solves; JIT compilation is excluded by a warm-up run per element). The
+machine may be shared: each row also records the process CPU time (s, this rank) and the
+1-minute load average at the start of the run, so inflated wall times can be recognised.
+--budget-s stops starting new runs once the budget is spent (the CSV is rewritten after every
+point, so a cut-short benchmark still leaves its rows).
 
     .venv/bin/python benchmarks/fingertip_time_vs_error.py --out results/bench_fingertip
     mpirun -n 2 .venv/bin/python benchmarks/fingertip_time_vs_error.py --sizes 3,2.5,2,1.5
@@ -14,6 +18,7 @@ Writes CSV (stdout and OUT/fingertip_time_vs_error.csv) and OUT/fingertip_time_v
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 from pathlib import Path
@@ -34,30 +39,59 @@ def main() -> None:
     ap.add_argument("--angle", type=float, default=15.0, help="plate angle, deg (default 15)")
     ap.add_argument("--sizes", default="3.0,2.5,2.0,1.5,1.2",
                     help="global element sizes h, mm, coarse to fine (pad is 0.6 h)")
-    ap.add_argument("--elements", default="taylor-hood,p2", help="element families")
+    ap.add_argument("--elements", default="taylor-hood,p1-p0",
+                    help="element families, comma-separated (taylor-hood, p1-p0, p2, p1)")
+    ap.add_argument("--budget-s", type=float, default=None,
+                    help="wall-time budget, s: no new run is started after it is spent")
+    ap.add_argument("--no-warmup", action="store_true",
+                    help="skip the untimed warm-up solve per element (forms already cached)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per point (median)")
     ap.add_argument("--out", default="results/bench_fingertip", help="output folder")
     a = ap.parse_args()
     comm = MPI.COMM_WORLD
     sizes = [float(x) for x in a.sizes.split(",")]
     rows = []
+    t_start = time.perf_counter()
+    out = Path(a.out)
+
+    def over_budget() -> bool:
+        spent = comm.bcast(time.perf_counter() - t_start, root=0)
+        return a.budget_s is not None and spent > a.budget_s
+
     for el in a.elements.split(","):
-        # warm-up: compile this element's forms once (not timed)
-        run(FingertipConfig(angle_deg=a.angle, h_mm=max(sizes), element=el),
-            force_N=min(a.force, 1.0), comm=comm)
+        if over_budget():
+            break
+        if not a.no_warmup:
+            # warm-up: compile this element's forms once (not timed)
+            run(FingertipConfig(angle_deg=a.angle, h_mm=max(sizes), element=el),
+                force_N=min(a.force, 1.0), comm=comm)
         for h in sizes:
-            times, res = [], None
+            times, cpus, loads, res = [], [], [], None
             for _ in range(a.repeats):
-                t0 = time.perf_counter()
+                if over_budget() and times:
+                    break
+                loads.append(os.getloadavg()[0])
+                t0, c0 = time.perf_counter(), time.process_time()
                 res = run(FingertipConfig(angle_deg=a.angle, h_mm=h, element=el),
                           force_N=a.force, comm=comm)
                 times.append(time.perf_counter() - t0)
+                cpus.append(time.process_time() - c0)
+            if res is None:
+                break
             row = {"element": el, "h_mm": h, "dofs": res.dofs, "cells": res.cells,
-                   "wall_s_median": statistics.median(times), "newton_iterations":
-                   res.newton_iterations, **{m: getattr(res, m) for m in METRICS},
+                   "runs": len(times), "wall_s_median": statistics.median(times),
+                   "cpu_s_median": statistics.median(cpus), "load_avg_1min": max(loads),
+                   "newton_iterations": res.newton_iterations, "load_steps": res.load_steps,
+                   "uzawa_updates": res.uzawa_updates, "force_N": res.force_N,
+                   **{m: getattr(res, m) for m in METRICS},
                    "max_penetration_mm": res.max_penetration_mm, "ranks": comm.size}
             rows.append(row)
             rprint(f"# {el} h={h}: {row}")
+            if comm.rank == 0:
+                out.mkdir(parents=True, exist_ok=True)
+                write_csv(out / "fingertip_time_vs_error.csv", rows)
+            if over_budget():
+                break
     # errors against the finest run of each element and against the overall finest
     for el in {r["element"] for r in rows}:
         mine = sorted((r for r in rows if r["element"] == el), key=lambda r: r["h_mm"])
@@ -65,8 +99,7 @@ def main() -> None:
         for r in mine:
             for m in METRICS:
                 r[f"err_{m}_pct"] = 100.0 * abs(r[m] - ref[m]) / abs(ref[m])
-    if comm.rank == 0:
-        out = Path(a.out)
+    if comm.rank == 0 and rows:
         out.mkdir(parents=True, exist_ok=True)
         write_csv(out / "fingertip_time_vs_error.csv", rows)
         print((out / "fingertip_time_vs_error.csv").read_text())

@@ -104,11 +104,21 @@ def test_geometry_mean_row(geom):
         assert gs.bone_bottom_mm + gs.palmar_depth_mm == pytest.approx(gs.DN0_mm)
 
 
+def test_levels_ordered_coarse_for_tests():
+    """'coarse' (for fast tests of other modules, not validated) is the coarsest level and each
+    level's pad is finer than its global size."""
+    names = ("coarse", "reduced", "default", "fine")
+    sizes = [mesh_sizes(n) for n in names]
+    assert sizes[0] == (3.5, 2.0)
+    assert all(a[0] > b[0] and a[1] > b[1] for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+    assert all(h_pad < h for h, h_pad in sizes)
+
+
 def test_bad_input(geom):
     with pytest.raises(InputError, match="S9"):
         fingertip_geometry("S9")
     with pytest.raises(InputError, match="mesh level"):
-        mesh_sizes("coarse")
+        mesh_sizes("tiny")
     with pytest.raises(InputError, match="h_mm"):
         mesh_sizes(h_mm=-1.0)
     with pytest.raises(InputError, match="skin_thickness"):
