@@ -1,0 +1,60 @@
+"""``handfe run``: a whole-hand grasp workflow (issue 6)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = """\
+Run a grasp workflow (workflows/*.toml: subject + grasp + loading + mesh level + outputs).
+
+The hand is meshed in the subject's measured grasp posture (glove angles, or the grasp's pose
+file) with only the participating digits; the rigid object (grasps/*.toml) is placed in the grasp
+cavity just short of contact. Bones are rigid and move as boundary conditions; skin and
+subcutaneous tissue are Ogden N=3 (near-incompressible, P1 displacement + DG0 pressure);
+contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
+
+Loading:
+  muscles  the flexion joints of the participating digits are released: the EMG muscle forces
+           act as joint torques through their moment arms (anatomy/moment_arms.csv) and the
+           angles are solved so that muscle + ligament + tissue/contact torques balance at
+           every joint (relative residual <= 1e-3)
+  angles   the flexion joints close by solver.closing_deg from the measured posture
+
+Writes into --out (rank 0):
+  regions.csv     per region (thumb, index, middle, ring, little, palm, and each digit's
+                  proximal/middle/distal segment): contact_area_mm2, mean_pressure_kPa,
+                  peak_pressure_kPa, normal_force_N, tangential_force_N
+  fingertips.csv  mean and peak contact pressure and area on the five distal pads
+  summary.json    grip force, equilibrium vs measured angles, torque residuals, max penetration,
+                  dofs, load steps, Newton iterations, wall time per stage, what was skipped
+  fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
+  pressure.png    palmar-view contact pressure map (kPa), regions outlined
+A failed run writes summary.json with the failed stage and error and exits 2.
+
+Examples:
+  handfe run workflows/cylindrical.toml --mesh reduced --out results/cylindrical
+  mpirun -n 2 handfe run workflows/precision.toml --out results/precision
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run a grasp workflow (per-region contact pressure/area)",
+                       description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("workflow", help="workflow TOML (path, or a name in workflows/)")
+    p.add_argument("--mesh", choices=("coarse", "reduced", "default", "fine"), default=None,
+                   help="mesh level, overrides the workflow's (coarse: tests/previews only)")
+    p.add_argument("--loading", choices=("muscles", "angles"), default=None,
+                   help="loading mode, overrides the workflow's")
+    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from handfe.grasp import run_workflow
+
+    run_workflow(args.workflow, mesh=args.mesh, out_dir=Path(args.out), loading=args.loading,
+                 progress=not args.quiet)
+    return 0

@@ -1,0 +1,141 @@
+"""Grasp definitions (``grasps/*.toml``) and run recipes (``workflows/*.toml``) as typed,
+frozen dataclasses. Unknown keys and out-of-range values raise ConfigError naming file and key.
+
+Frames: object geometry is given in the **hand frame** (origin on the distal wrist crease, x
+radial, y distal, z palmar; mm), see docs/anatomy.md."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from handfe.config import bounds, choices, load
+from handfe.errors import ConfigError
+from handfe.kinematics import DIGITS
+from handfe.paths import GRASPS_DIR, REPO_ROOT, WORKFLOWS_DIR
+
+MESH_LEVELS = ("coarse", "reduced", "default", "fine")
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """The rigid grasped object (mm, hand frame). ``centre_mm`` is where the placement search
+    starts; the object is then moved within ``search_mm`` (half-widths along hand x, y, z) to the
+    position of largest clearance to the skin of ``placement_regions`` (the grasp cavity), so the
+    hand starts just short of contact."""
+
+    shape: str = field(default="cylinder", metadata=choices("cylinder", "sphere", "capsule", "box"))
+    radius_mm: float = field(default=25.0, metadata=bounds(1.0, 200.0))
+    length_mm: float = field(default=120.0, metadata=bounds(1.0, 600.0))
+    half_sizes_mm: tuple[float, float, float] = field(default=(20.0, 20.0, 20.0),
+                                                      metadata=bounds(0.5, 300.0))
+    edge_radius_mm: float = field(default=2.0, metadata=bounds(0.0, 100.0))
+    axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    centre_mm: tuple[float, float, float] = (0.0, 90.0, 40.0)
+    search_mm: tuple[float, float, float] = field(default=(0.0, 15.0, 15.0),
+                                                  metadata=bounds(0.0, 100.0))
+    placement_regions: tuple[str, ...] = ()
+    min_clearance_mm: float = field(default=0.2, metadata=bounds(0.0, 20.0))
+
+
+@dataclass(frozen=True)
+class GraspSpec:
+    """A grasp: posture source, participating digits, object and friction."""
+
+    description: str = ""
+    pose: str = "glove"  # "glove" = the subject's glove angles for this grasp, or a pose TOML
+    digits: tuple[str, ...] = DIGITS
+    friction: float = field(default=0.74, metadata=bounds(0.0, 3.0))
+    # flexion (deg) taken off the measured angles of the released joints before meshing: the
+    # posture "just short of contact" from which the digits close onto the object
+    opening_deg: float = field(default=0.0, metadata=bounds(0.0, 90.0))
+    object: ObjectSpec = field(default_factory=ObjectSpec)
+    name: str = ""
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        bad = [d for d in self.digits if d not in DIGITS]
+        if bad or not self.digits:
+            raise ConfigError(f"{self.source or '<grasp>'}: 'digits' = {list(self.digits)!r}: "
+                              f"unknown digit(s) {bad} (choose from {', '.join(DIGITS)})")
+        regions = set(DIGITS) | {"palm"}
+        badr = [r for r in self.object.placement_regions if r not in regions]
+        if badr:
+            raise ConfigError(f"{self.source or '<grasp>'}: 'object.placement_regions' = "
+                              f"{list(self.object.placement_regions)!r}: unknown region(s) {badr}")
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    """Outer (joint torque balance) and inner (FE Newton) settings."""
+
+    max_outer: int = field(default=30, metadata=bounds(1, 200))
+    torque_rtol: float = field(default=1e-3, metadata=bounds(1e-8, 0.5))
+    max_step_deg: float = field(default=3.0, metadata=bounds(0.1, 20.0))
+    closing_deg: float = field(default=6.0, metadata=bounds(0.0, 45.0))
+    closing_steps: int = field(default=3, metadata=bounds(1, 100))
+    penalty_factor: float = field(default=10.0, metadata=bounds(0.1, 1e6))
+    penetration_tol_mm: float = field(default=0.01, metadata=bounds(1e-5, 1.0))
+    gap_tol_mm: float = field(default=0.01, metadata=bounds(0.0, 1.0))
+    max_augment: int = field(default=12, metadata=bounds(0, 100))
+    nu: float = field(default=0.49, metadata=bounds(0.3, 0.4999))
+
+
+@dataclass(frozen=True)
+class Outputs:
+    fields: bool = True
+    png: bool = True
+
+
+@dataclass(frozen=True)
+class Workflow:
+    """A run recipe: subject + grasp + loading + mesh level + outputs."""
+
+    subject: str = "subjects/S01"
+    grasp: str = "cylindrical"  # a name in grasps/ or a path to a grasp TOML
+    trial: int = field(default=0, metadata=bounds(0, 1000))  # 0 = mean over the trials
+    loading: str = field(default="muscles", metadata=choices("muscles", "angles"))
+    mesh: str = field(default="reduced", metadata=choices(*MESH_LEVELS))
+    element: str = field(default="p1-p0", metadata=choices("p1-p0", "taylor-hood"))
+    solver: SolverSpec = field(default_factory=SolverSpec)
+    outputs: Outputs = field(default_factory=Outputs)
+    source: str = ""
+
+    def subject_dir(self) -> Path:
+        p = _resolve(self.subject, self.source)
+        if not (p / "anthropometry.toml").is_file():
+            raise ConfigError(f"{self.source or '<workflow>'}: 'subject' = {self.subject!r}: no "
+                              f"subject folder with anthropometry.toml at {p}")
+        return p
+
+    def grasp_spec(self) -> GraspSpec:
+        g = self.grasp
+        p = GRASPS_DIR / f"{g}.toml" if "/" not in g and not g.endswith(".toml") \
+            else _resolve(g, self.source)
+        if not p.is_file():
+            known = ", ".join(sorted(q.stem for q in GRASPS_DIR.glob("*.toml")))
+            raise ConfigError(f"{self.source or '<workflow>'}: 'grasp' = {g!r}: no grasp file "
+                              f"{p} (grasps/: {known})")
+        spec = load(GraspSpec, p)
+        return replace(spec, name=spec.name or p.stem, source=str(p))
+
+
+def _resolve(path: str, source: str) -> Path:
+    p = Path(path)
+    if p.is_absolute():
+        return p
+    if (REPO_ROOT / p).exists() or not source:
+        return REPO_ROOT / p
+    return Path(source).parent / p
+
+
+def load_workflow(path: str | Path) -> Workflow:
+    """Read a workflow TOML (path, or a name in workflows/)."""
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        p = WORKFLOWS_DIR / f"{path}.toml"
+    wf = load(Workflow, p)
+    wf = replace(wf, source=str(p))
+    wf.subject_dir()
+    wf.grasp_spec()
+    return wf

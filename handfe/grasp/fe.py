@@ -1,0 +1,327 @@
+"""Finite-element part of the grasp: tissue problem, rigid-bone boundary conditions, contact,
+a two-form Newton solver and the bone reactions/torques (with their condensed derivative).
+
+The tissue energy is *one* Ogden expression whose parameters are piecewise-constant (DG0)
+fields over the skin and subcutaneous cells, plus a compressible neo-Hookean nail: the big Ogden
+kernel is compiled once for every grasp, subject and material perturbation. The contact terms
+are a separate form (the obstacle's shape is in its code), so a new object only compiles the
+small facet kernel. Residual sign as in :mod:`handfe.solver`: R = internal - external; at a bone
+node R is the force the bone exerts on the tissue.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import ufl
+from dolfinx import fem
+from dolfinx.fem import petsc as fem_petsc
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
+from handfe.solver import Discretisation
+
+SKIN, SUBCUT, NAIL = 1, 2, 3
+
+
+class GraspProblem:
+    """Mixed u-p tissue problem on a :class:`~handfe.anatomy.HandModel` (duck-types the parts of
+    :class:`handfe.solver.HyperelasticProblem` that :class:`~handfe.contact_problem.RigidContact`
+    uses)."""
+
+    def __init__(self, model, skin: Ogden, subcutaneous: Ogden, *, element: str = "p1-p0",
+                 nail_E_MPa: float | None = None):
+        mesh = model.mesh
+        self.mesh, self.comm = mesh, mesh.comm
+        self.disc = Discretisation(element)
+        cell = mesh.ufl_cell()
+        Ve = ufl.VectorElement("CG", cell, self.disc.degree)
+        family, pdeg = self.disc.pressure_element
+        self.W = fem.FunctionSpace(mesh, ufl.MixedElement([Ve, ufl.FiniteElement(family, cell,
+                                                                                 pdeg)]))
+        self.w = fem.Function(self.W, name="state")
+        self.v = ufl.TestFunction(self.W)
+        self.u, self.p = ufl.split(self.w)
+        self.vu = ufl.split(self.v)[0]
+        ct = model.cell_tags
+        self.dx = ufl.Measure("dx", domain=mesh, subdomain_data=ct,
+                              metadata={"quadrature_degree": self.disc.qdeg})
+        self.ds_metadata = {"quadrature_degree": self.disc.qdeg}
+        self.F = ufl.variable(ufl.Identity(3) + ufl.grad(self.u))
+        # Ogden parameters as DG0 fields
+        D0v = fem.VectorFunctionSpace(mesh, ("DG", 0), dim=len(skin.mu_MPa))
+        D0 = fem.FunctionSpace(mesh, ("DG", 0))
+        self.mu = fem.Function(D0v, name="ogden_mu")
+        self.alpha = fem.Function(D0v, name="ogden_alpha")
+        self.inv_kappa = fem.Function(D0, name="inv_kappa")
+        self._cells = {t: ct.indices[ct.values == t] for t in (SKIN, SUBCUT, NAIL)}
+        self.skin, self.subcutaneous = skin, subcutaneous
+        self.set_tissue(skin, subcutaneous)
+        c = {"mu": self.mu, "alpha": self.alpha}
+        J = ufl.det(self.F)
+        e_tissue = skin.w_dev(self.F, c) + self.p * skin.vol_G(J) \
+            - 0.5 * self.inv_kappa * self.p ** 2
+        nail = StVenantKirchhoff.nail()
+        E = nail_E_MPa if nail_E_MPa is not None else nail.youngs_modulus_MPa
+        self.nail = BoundMaterial(NeoHookean.from_E_nu(E, 0.3), mesh)
+        e_nail = self.nail.mixed_energy(self.F, self.p)
+        self.energy = e_tissue * self.dx((SKIN, SUBCUT)) + e_nail * self.dx(NAIL)
+        self.internal_residual = ufl.derivative(self.energy, self.w, self.v)
+        self.extra_residual: list = []
+        self.bound = {}  # RigidContact gets E_eff explicitly
+        self.bcs: list = []
+
+    def set_tissue(self, skin: Ogden, subcutaneous: Ogden) -> None:
+        """Assign the skin and subcutaneous Ogden parameters (same term count; no recompile)."""
+        if len(skin.mu_MPa) != len(subcutaneous.mu_MPa) or \
+                len(skin.mu_MPa) != self.mu.function_space.num_sub_spaces:
+            raise ValueError("skin and subcutaneous Ogden sets need the same number of terms")
+        n = len(skin.mu_MPa)
+        for tag, mat in ((SKIN, skin), (SUBCUT, subcutaneous), (NAIL, subcutaneous)):
+            cells = self._cells[tag]
+            mu = self.mu.x.array.reshape(-1, n)
+            al = self.alpha.x.array.reshape(-1, n)
+            mu[cells] = mat.mu_MPa
+            al[cells] = mat.alpha
+            self.inv_kappa.x.array[cells] = 1.0 / mat.bulk_modulus_MPa
+        for f in (self.mu, self.alpha, self.inv_kappa):
+            f.x.scatter_forward()
+        self.skin, self.subcutaneous = skin, subcutaneous
+
+    def add_residual(self, form) -> None:
+        self.extra_residual.append(form)
+
+    def num_dofs(self) -> int:
+        im = self.W.dofmap.index_map
+        return im.size_global * self.W.dofmap.index_map_bs
+
+    def displacement(self) -> fem.Function:
+        return self.w.sub(0).collapse()
+
+
+class TwoFormNewton:
+    """SNES Newton (MUMPS LU, backtracking) on R = R_tissue + R_contact with the two forms
+    compiled separately; Dirichlet rows from ``problem.bcs``."""
+
+    def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
+                 max_it: int = 25):
+        self.problem = problem
+        W = problem.W
+        du = ufl.TrialFunction(W)
+        R1 = problem.internal_residual
+        R2 = sum(problem.extra_residual)
+        self.L = [fem.form(R1), fem.form(R2)]
+        self.a = [fem.form(ufl.derivative(R1, problem.w, du)),
+                  fem.form(ufl.derivative(R2, problem.w, du))]
+        self.b = fem_petsc.create_vector(self.L[0])
+        self.A = fem_petsc.create_matrix(self.a[0])
+        self.x = self.b.duplicate()
+        self.snes = PETSc.SNES().create(problem.comm)
+        self.snes.setType("newtonls")
+        self.snes.getLineSearch().setType("bt")
+        ksp = self.snes.getKSP()
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        self.snes.setFunction(self._residual, self.b)
+        self.snes.setJacobian(self._jacobian, self.A)
+        self.snes.setTolerances(rtol=rtol, atol=atol, stol=1e-14, max_it=max_it)
+        self.history: list[float] = []
+        self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
+        self.iterations = 0
+
+    def _residual(self, snes, x, b):
+        p = self.problem
+        x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        x.copy(p.w.vector)
+        p.w.x.scatter_forward()
+        with b.localForm() as bl:
+            bl.set(0.0)
+        for L in self.L:
+            fem_petsc.assemble_vector(b, L)
+        fem_petsc.apply_lifting(b, self.a, bcs=[p.bcs, p.bcs], x0=[x, x], scale=-1.0)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem_petsc.set_bc(b, p.bcs, x, -1.0)
+
+    def _jacobian(self, snes, x, A, P):
+        A.zeroEntries()
+        fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs)
+        fem_petsc.assemble_matrix(A, self.a[1], bcs=self.problem.bcs, diagonal=0.0)
+        A.assemble()
+
+    def solve(self) -> tuple[bool, int, str]:
+        self.history = []
+        p = self.problem
+        p.w.vector.copy(self.x)
+        try:
+            self.snes.solve(None, self.x)
+        except PETSc.Error as exc:
+            return False, self.snes.getIterationNumber(), f"PETSc error {exc}"
+        reason = self.snes.getConvergedReason()
+        its = self.snes.getIterationNumber()
+        self.iterations += its
+        ok = reason > 0 and all(np.isfinite(self.history))
+        if ok:
+            self.x.copy(p.w.vector)
+            p.w.x.scatter_forward()
+        return ok, its, str(reason)
+
+    def full_residual(self) -> PETSc.Vec:
+        """R (no boundary conditions) at the current state, ghosts summed."""
+        b = self.b.duplicate()
+        with b.localForm() as bl:
+            bl.set(0.0)
+        for L in self.L:
+            fem_petsc.assemble_vector(b, L)
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        return b
+
+    def full_matrix(self) -> PETSc.Mat:
+        K = fem_petsc.create_matrix(self.a[0])
+        K.zeroEntries()
+        for a in self.a:
+            fem_petsc.assemble_matrix(K, a)
+        K.assemble()
+        return K
+
+    def destroy(self) -> None:
+        for o in (self.snes, self.A, self.b, self.x):
+            o.destroy()
+
+
+class BoneBC:
+    """Rigid-bone Dirichlet data: every bone's surface nodes follow its rigid motion, the wrist
+    (and partial-hand cut) faces are fixed."""
+
+    def __init__(self, problem: GraspProblem, model, bones: list[str]):
+        self.problem = problem
+        W = problem.W
+        V, _ = W.sub(0).collapse()
+        self.V = V
+        self.ubc = fem.Function(V, name="bone_displacement")
+        ft = model.facet_tags
+        fdim = model.mesh.topology.dim - 1
+        self.X = V.tabulate_dof_coordinates()
+        self.blocks: dict[str, np.ndarray] = {}
+        self.wdofs: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
+        all_f = []
+        for b in bones:
+            f = ft.find(model.tags[f"bone_{b}"])
+            all_f.append(f)
+            self.blocks[b] = fem.locate_dofs_topological(V, fdim, f)
+            wd, vd = fem.locate_dofs_topological((W.sub(0), V), fdim, f)
+            own = wd < n_owned
+            self.wdofs[b] = (wd[own], vd[own] // 3, vd[own] % 3)
+        for t in (90, 91):
+            all_f.append(ft.find(t))
+        facets = np.unique(np.concatenate(all_f)).astype(np.int32)
+        self.bc_comp_dofs = []
+        self.all_comp_dofs = []
+        for i in range(3):
+            d = fem.locate_dofs_topological(W.sub(0).sub(i), fdim, facets)
+            self.bc_comp_dofs.append(d[d < n_owned])
+            a = np.unique(W.sub(0).sub(i).dofmap.list.array)
+            self.all_comp_dofs.append(a[a < n_owned])
+        dofs = fem.locate_dofs_topological((W.sub(0), V), fdim, facets)
+        self.bc_dofs_W = dofs[0]
+        problem.bcs.append(fem.dirichletbc(self.ubc, dofs, W.sub(0)))
+        self.bones = bones
+
+    def set(self, motions, blend: float = 1.0, previous=None) -> None:
+        """Bone displacements from rigid motions {bone: (R, t)} (optionally blended linearly with
+        the ``previous`` motions' displacement, for step cutting)."""
+        u = self.ubc.x.array.reshape(-1, 3)
+        for b in self.bones:
+            blk = self.blocks[b]
+            R, t = motions[b]
+            new = self.X[blk] @ R.T + t - self.X[blk]
+            if previous is not None and blend < 1.0:
+                R0, t0 = previous[b]
+                old = self.X[blk] @ R0.T + t0 - self.X[blk]
+                new = old + blend * (new - old)
+            u[blk] = new
+        self.ubc.x.scatter_forward()
+
+    def node_data(self, b: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Owned W dofs of bone ``b``, their component and current position (mm)."""
+        wd, blk, comp = self.wdofs[b]
+        x = self.X[blk] + self.ubc.x.array.reshape(-1, 3)[blk]
+        return wd, comp, x
+
+
+def torques_from(vec_arr: np.ndarray, bc: BoneBC, axes_centres, distal_sets, comm) -> np.ndarray:
+    """sum over bone nodes of a . ((x - c) x f e_k) with f = -vec (force the tissue exerts on the
+    bone), per joint; reduced over ranks."""
+    out = np.zeros(len(axes_centres))
+    for i, ((a, c), bones) in enumerate(zip(axes_centres, distal_sets, strict=True)):
+        s = 0.0
+        for b in bones:
+            if b not in bc.wdofs:
+                continue
+            wd, comp, x = bc.node_data(b)
+            lever = np.cross(a, x - c)  # (n, 3)
+            s += float(np.sum(-vec_arr[wd] * lever[np.arange(len(wd)), comp]))
+        out[i] = s
+    return np.array(comm.allreduce(out, op=MPI.SUM))
+
+
+def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets,
+                              comm) -> np.ndarray:
+    """d(tissue torque_j)/d(theta_i) (N mm / rad) with the tissue in equilibrium: the bone
+    nodes of the bones distal to joint i rotate about its axis (v = a_i x (x - c_i)), the free
+    dofs follow (K_ff dz = -K_fb v, solved with the factorised Newton matrix), and the change of
+    the bone reactions dR = K (v + dz) is turned into torques."""
+    K = solver.full_matrix()
+    ksp = solver.snes.getKSP()
+    n = len(axes_centres)
+    Jm = np.zeros((n, n))
+    v, y, z, dR = (K.createVecRight() for _ in range(4))
+    bcd = bc.bc_dofs_W
+    n_owned = v.getLocalSize()
+    bcd_own = bcd[bcd < n_owned]
+    for i, ((a, c), bones) in enumerate(zip(axes_centres, distal_sets, strict=True)):
+        v.set(0.0)
+        arr = v.getArray()
+        for b in bones:
+            if b not in bc.wdofs:
+                continue
+            wd, comp, x = bc.node_data(b)
+            arr[wd] = np.cross(a, x - c)[np.arange(len(wd)), comp]
+        v.setArray(arr)
+        K.mult(v, y)
+        y.scale(-1.0)
+        ya = y.getArray()
+        ya[bcd_own] = 0.0
+        y.setArray(ya)
+        ksp.solve(y, z)
+        za = z.getArray()
+        za[bcd_own] = 0.0
+        z.setArray(za)
+        z.axpy(1.0, v)
+        K.mult(z, dR)
+        Jm[:, i] = torques_from(dR.getArray(), bc, axes_centres, distal_sets, comm)
+    for o in (K, v, y, z, dR):
+        o.destroy()
+    return Jm
+
+
+def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm) -> dict:
+    """Force on the object (sum of the contact residual, N) against the support reactions
+    (sum of the full residual over bone and wrist nodes, N): equal at equilibrium."""
+    R = solver.full_residual()
+    from dolfinx.fem import petsc as fp
+
+    Rc = fp.assemble_vector(solver.L[1])
+    Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    r, rc = R.getArray(), Rc.getArray()
+    sup = np.array([r[d].sum() for d in bc.bc_comp_dofs])
+    obj = np.array([rc[d].sum() for d in bc.all_comp_dofs])
+    sup = np.array(comm.allreduce(sup, op=MPI.SUM))
+    obj = np.array(comm.allreduce(obj, op=MPI.SUM))
+    R.destroy()
+    Rc.destroy()
+    err = float(np.linalg.norm(sup - obj) / max(np.linalg.norm(obj), 1e-300))
+    return {"object_force_N": obj.tolist(), "support_reaction_N": sup.tolist(),
+            "equilibrium_relative_error": err}

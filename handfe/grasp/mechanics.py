@@ -1,0 +1,179 @@
+"""Rigid-bone kinematics, muscle and ligament torques of the grasp (no FE here).
+
+Conventions: angles in degrees at interfaces, radians inside derivatives; torques in N mm about
+the joint's flexion axis (the segment frame's e_x through the joint centre), positive = flexing.
+Bone motion: a bone meshed in the posture ``pose0`` is moved rigidly to ``pose`` by
+x -> R (x - o0) + o with (R0, o0), (R1, o) its frames, R = R1 R0^T.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+
+import numpy as np
+
+from handfe.anatomy.skeleton import JOINT_NAMES, Skeleton, build_skeleton
+from handfe.anatomy.tables import DIGIT_BONES
+from handfe.errors import InputError
+from handfe.kinematics import Pose, joint_table
+from handfe.paths import ANATOMY_DIR
+
+# flexion DOFs a muscle can drive (thumb IP: no flexor among the nine muscles)
+RELEASED = {"thumb": ("thumb_cmc", "thumb_mcp"),
+            "index": ("index_mcp", "index_pip", "index_dip")}
+for _d in ("middle", "ring", "little"):
+    RELEASED[_d] = tuple(j.replace("index", _d) for j in RELEASED["index"])
+
+
+def moment_arms() -> dict[tuple[str, str], float]:
+    """(muscle, joint) -> flexion moment arm, mm (anatomy/moment_arms.csv)."""
+    path = ANATOMY_DIR / "moment_arms.csv"
+    with path.open() as fh:
+        rows = csv.DictReader(line for line in fh if not line.startswith("#"))
+        return {(r["muscle"], r["joint"]): float(r["moment_arm_mm"]) for r in rows}
+
+
+def insertion_shares() -> dict[tuple[str, str], float]:
+    """(muscle, digit) -> share of the muscle force (anatomy/insertions.csv)."""
+    path = ANATOMY_DIR / "insertions.csv"
+    with path.open() as fh:
+        rows = csv.DictReader(line for line in fh if not line.startswith("#"))
+        return {(r["muscle"], r["digit"]): float(r["share"]) for r in rows}
+
+
+@dataclass(frozen=True)
+class Joint:
+    """A released flexion joint: DOF name, digit, index of the first distal bone in the digit."""
+
+    name: str  # e.g. "index_pip"
+    dof: str  # e.g. "index_pip_flexion"
+    digit: str
+    k: int  # position in JOINT_NAMES[digit]
+
+    @property
+    def distal_bones(self) -> tuple[str, ...]:
+        return DIGIT_BONES[self.digit][self.k:]
+
+
+def released_joints(digits: tuple[str, ...]) -> list[Joint]:
+    out = []
+    for d in digits:
+        for name in RELEASED[d]:
+            k = JOINT_NAMES[d].index(name)
+            out.append(Joint(name, f"{name}_flexion", d, k))
+    return out
+
+
+def joint_axis_centre(skel: Skeleton, j: Joint) -> tuple[np.ndarray, np.ndarray]:
+    """Unit flexion axis and centre (mm) of joint ``j`` in the posed skeleton."""
+    bone = DIGIT_BONES[j.digit][j.k]
+    return skel.segment_frames[bone].R[:, 0].copy(), np.asarray(skel.joint_centres[j.name])
+
+
+class Kinematics:
+    """Bone rigid motions and joint axes as functions of the released flexion angles."""
+
+    def __init__(self, subject, pose0: Pose, joints: list[Joint]):
+        self.subject, self.pose0, self.joints = subject, pose0, joints
+        self.skel0 = build_skeleton(subject, pose0)
+        self.theta0 = np.array([pose0[j.dof] for j in joints])
+        table = joint_table()
+        self.lo = np.array([table[j.dof].min for j in joints])
+        self.hi = np.array([table[j.dof].max for j in joints])
+        self.frames0 = {n: b.frame for n, b in self.skel0.bones.items()}
+
+    def clamp(self, theta_deg: np.ndarray) -> np.ndarray:
+        return np.clip(theta_deg, self.lo, self.hi)
+
+    def skeleton(self, theta_deg: np.ndarray) -> Skeleton:
+        vals = dict(self.pose0.values)
+        for j, t in zip(self.joints, self.clamp(theta_deg), strict=True):
+            vals[j.dof] = float(t)
+        return build_skeleton(self.subject, Pose(vals, source="grasp"))
+
+    def motions(self, skel: Skeleton) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Bone -> (R, t) with x_new = R x + t for points x of the meshed posture."""
+        out = {}
+        for n, f0 in self.frames0.items():
+            f1 = skel.bones[n].frame
+            R = f1.R @ f0.R.T
+            out[n] = (R, f1.o - R @ f0.o)
+        return out
+
+
+def ligament_force_N(length_mm: float, slack_mm: float, k_N_per_mm: float,
+                     eps_toe: float) -> float:
+    """Tension (N) of a ligament spring: slack below its slack length, quadratic toe region up
+    to strain ``eps_toe``, linear with stiffness ``k_N_per_mm`` beyond (Blankevoort 1991)."""
+    eps = (length_mm - slack_mm) / slack_mm
+    if eps <= 0.0:
+        return 0.0
+    if eps_toe <= 0.0 or eps >= eps_toe:
+        return k_N_per_mm * (length_mm - slack_mm - 0.5 * eps_toe * slack_mm)
+    return k_N_per_mm * slack_mm * eps * eps / (2.0 * eps_toe)
+
+
+class Ligaments:
+    """Ligament springs of the meshed bones, attachment points carried by the bone motions."""
+
+    def __init__(self, skel0: Skeleton, kept_bones: set[str]):
+        self.rows = [lg for lg in skel0.ligaments()
+                     if lg["bone_a"] in kept_bones and lg["bone_b"] in kept_bones]
+        self.pa0 = np.array([lg["point_a_mm"] for lg in self.rows]).reshape(-1, 3)
+        self.pb0 = np.array([lg["point_b_mm"] for lg in self.rows]).reshape(-1, 3)
+
+    def forces(self, motions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Attachment points a, b (n, 3) and force on b (n, 3) (force on a is its negative)."""
+        pa = np.array([motions[lg["bone_a"]][0] @ p + motions[lg["bone_a"]][1]
+                       for lg, p in zip(self.rows, self.pa0, strict=True)]).reshape(-1, 3)
+        pb = np.array([motions[lg["bone_b"]][0] @ p + motions[lg["bone_b"]][1]
+                       for lg, p in zip(self.rows, self.pb0, strict=True)]).reshape(-1, 3)
+        fb = np.zeros_like(pb)
+        for i, lg in enumerate(self.rows):
+            d = pb[i] - pa[i]
+            L = float(np.linalg.norm(d))
+            f = ligament_force_N(L, lg["slack_length_mm"], lg["k_N_per_mm"], lg["eps_toe"])
+            fb[i] = -f * d / max(L, 1e-12)
+        return pa, pb, fb
+
+    def torques(self, motions, skel: Skeleton, joints: list[Joint]) -> np.ndarray:
+        """Ligament torque about each joint (N mm) on the bones distal to it."""
+        pa, pb, fb = self.forces(motions)
+        out = np.zeros(len(joints))
+        for i, j in enumerate(joints):
+            a, c = joint_axis_centre(skel, j)
+            distal = set(j.distal_bones)
+            for n, lg in enumerate(self.rows):
+                if lg["bone_b"] in distal:
+                    out[i] += a @ np.cross(pb[n] - c, fb[n])
+                if lg["bone_a"] in distal:
+                    out[i] += a @ np.cross(pa[n] - c, -fb[n])
+        return out
+
+
+def muscle_torques(forces_N: dict[str, float], joints: list[Joint]) -> np.ndarray:
+    """Muscle torque (N mm) about each released joint: sum of F * share * moment arm."""
+    arms, shares = moment_arms(), insertion_shares()
+    out = np.zeros(len(joints))
+    for i, j in enumerate(joints):
+        for m, F in forces_N.items():
+            r = arms.get((m, j.name))
+            if r is None:
+                continue
+            share = shares.get((m, j.digit))
+            if share is None:
+                raise InputError(f"anatomy/insertions.csv: no insertion of {m} on {j.digit}")
+            out[i] += F * share * r
+    return out
+
+
+def opened_pose(pose: Pose, digits: tuple[str, ...], opening_deg: float) -> Pose:
+    """``pose`` with ``opening_deg`` of flexion removed at the released joints of ``digits``
+    (clamped to the joint limits)."""
+    table = joint_table()
+    vals = dict(pose.values)
+    for j in released_joints(digits):
+        lo = table[j.dof].min
+        vals[j.dof] = max(lo, pose[j.dof] - opening_deg)
+    return Pose(vals, source=f"{pose.source} opened by {opening_deg:g} deg")

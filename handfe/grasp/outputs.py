@@ -1,0 +1,141 @@
+"""Per-region contact metrics from nodal fields, and the palmar pressure map.
+
+Metrics over the outer skin facets of each region code (see docs/anatomy.md): a facet is the
+flat triangle through its deformed vertices; its contact area is the part where the gap
+interpolated from the vertices is <= gap_tol (as :func:`handfe.contact.contact_metrics`), the
+pressure and tangential traction are the vertex values (P1) integrated with the vertex rule over
+the deformed facet. All sums are over owned facets and reduced over ranks.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from handfe.anatomy.meshing import PHALANGES, REGIONS, SKIN_OUTER_GMSH
+
+METRICS = ("contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
+           "tangential_force_N")
+
+
+def region_of(code: int) -> tuple[str, str]:
+    r = (int(code) - SKIN_OUTER_GMSH) // 10
+    ph = (int(code) - SKIN_OUTER_GMSH) % 10
+    return REGIONS[r - 1], (PHALANGES[ph - 1] if ph else "")
+
+
+def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float):
+    """Owned outer-skin facets: codes, deformed vertices (nf, 3, 3), gap at vertices, vertex
+    pressure (MPa), vertex tangential traction (nf, 3, 3), clipped contact area, full area."""
+    from dolfinx import cpp
+
+    from handfe.contact import _clip_patch, _node_values
+
+    mesh = model.mesh
+    fdim = mesh.topology.dim - 1
+    n_owned = mesh.topology.index_map(fdim).size_local
+    ft = model.facet_tags
+    codes_all = [c for c in model.groups["skin_outer"]]
+    sel = np.isin(ft.values, codes_all) & (ft.indices < n_owned)
+    facets, codes = ft.indices[sel], ft.values[sel]
+    nodes = cpp.mesh.entities_to_geometry(mesh._mesh, fdim, facets, False)[:, :3] \
+        if len(facets) else np.zeros((0, 3), dtype=np.int32)
+    xdef = mesh.geometry.x[:, :3] + _node_values(u1, mesh)
+    xf = xdef[nodes]
+    g, n = obstacle.gap_normal(xf.reshape(-1, 3), np.asarray(translation))
+    g = g.reshape(-1, 3)
+    pv = _node_values(p1, mesh)[:, 0][nodes]
+    tv = _node_values(t1, mesh)[nodes] if t1 is not None else np.zeros_like(xf)
+    ax = np.eye(3)[:2]
+    area_c, _, _, _ = _clip_patch(xf, g - gap_tol_mm, ax) if len(facets) else (
+        np.zeros(0), None, None, None)
+    full = 0.5 * np.linalg.norm(np.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]), axis=1) \
+        if len(facets) else np.zeros(0)
+    return {"codes": codes, "xf": xf, "g": g, "n": n.reshape(-1, 3, 3), "p": pv, "t": tv,
+            "area_c": area_c, "area": full}
+
+
+def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
+    """Metrics per region (thumb..little, palm) and per digit segment (``index_distal``...)."""
+    codes = fd["codes"]
+    keys: dict[str, np.ndarray] = {}
+    names = [region_of(c) for c in codes]
+    for r in REGIONS:
+        keys[r] = np.array([n[0] == r for n in names], dtype=bool)
+        if r != "palm":
+            for ph in PHALANGES:
+                if r == "thumb" and ph == "middle":
+                    continue
+                keys[f"{r}_{ph}"] = np.array([n == (r, ph) for n in names], dtype=bool)
+    pm = fd["p"].mean(axis=1) if len(codes) else np.zeros(0)
+    nm = fd["n"].mean(axis=1) if len(codes) else np.zeros((0, 3))
+    tm = fd["t"].mean(axis=1) if len(codes) else np.zeros((0, 3))
+    out = {}
+    for k, m in keys.items():
+        area = comm.allreduce(float(fd["area_c"][m].sum()), op=MPI.SUM)
+        psum = comm.allreduce(float((pm[m] * fd["area"][m]).sum()), op=MPI.SUM)
+        fvec = comm.allreduce((pm[m, None] * nm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
+        tvec = comm.allreduce((tm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
+        peak = comm.allreduce(float(fd["p"][m].max(initial=0.0)), op=MPI.MAX)
+        out[k] = {"contact_area_mm2": area,
+                  "mean_pressure_kPa": 1e3 * psum / area if area > 0 else 0.0,
+                  "peak_pressure_kPa": 1e3 * peak,
+                  "normal_force_N": float(np.linalg.norm(fvec)),
+                  "tangential_force_N": float(np.linalg.norm(tvec)),
+                  "force_vector_N": [float(x) for x in fvec]}
+    return out
+
+
+def pressure_map_png(fd: dict, hand_R: np.ndarray, path: Path, comm: MPI.Comm, *,
+                     title: str = "", obstacle_outline=None) -> None:
+    """Palmar view (looking at the palm along hand -z) of the deformed skin, coloured by contact
+    pressure (kPa), grey where there is none; region borders drawn in black."""
+    loc = (fd["xf"], fd["p"], fd["codes"])
+    allp = comm.gather(loc, root=0)
+    if comm.rank != 0:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection, PolyCollection
+
+    xf = np.concatenate([a[0] for a in allp])
+    p = np.concatenate([a[1] for a in allp]) * 1e3
+    codes = np.concatenate([a[2] for a in allp])
+    xh = xf @ hand_R  # world -> hand frame coordinates (rows)
+    depth = xh[:, :, 2].mean(axis=1)
+    order = np.argsort(depth)  # palmar (+z) last = on top
+    xy = xh[order][:, :, :2]  # seen from the palmar side: radial (+x) on the right
+    pf = p[order].mean(axis=1)
+    vmax = max(float(pf.max(initial=0.0)), 1e-9)
+    cmap = plt.get_cmap("inferno_r")
+    colors = np.where((pf > 1e-3 * vmax)[:, None], cmap(np.clip(pf / vmax, 0, 1)),
+                      np.array([0.85, 0.85, 0.85, 1.0]))
+    fig, ax = plt.subplots(figsize=(6.5, 8), dpi=110)
+    ax.add_collection(PolyCollection(xy, facecolors=colors, edgecolors="none"))
+    # region borders: edges between facets of different regions (visible ones only)
+    reg = np.array([region_of(c)[0] for c in codes[order]])
+    edges: dict[tuple, tuple[str, int]] = {}
+    segs = []
+    keyx = np.round(xh[order][:, :, :3], 3)
+    for i in range(len(order)):
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            k = tuple(sorted((tuple(keyx[i, a]), tuple(keyx[i, b]))))
+            if k in edges and edges[k][0] != reg[i]:
+                segs.append([xy[i, a], xy[i, b]])
+            edges[k] = (reg[i], i)
+    if segs:
+        ax.add_collection(LineCollection(segs, colors="k", linewidths=0.5))
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, vmax))
+    fig.colorbar(sm, ax=ax, label="contact pressure (kPa)", shrink=0.7)
+    ax.set_aspect("equal")
+    ax.autoscale()
+    ax.set_xlabel("ulnar  <-  x (mm)  ->  radial   (palmar view)")
+    ax.set_ylabel("y (mm), distal up")
+    ax.set_title(title or "contact pressure, palmar view")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

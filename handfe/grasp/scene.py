@@ -1,0 +1,553 @@
+"""Grasp scene assembly and the two loading modes.
+
+Stages: posture (glove angles or a pose file) -> muscle forces (EMG) -> posed mesh of the
+participating digits -> object placed in the grasp cavity just short of contact -> FE tissue
+problem with rigid bones -> loading -> outputs.
+
+* ``loading = "angles"``: the released flexion joints of the participating digits close by
+  ``solver.closing_deg`` from the measured posture (bone motions as boundary conditions).
+* ``loading = "muscles"``: the released flexion joints are unknowns; Newton on the joint
+  angles balances, at each joint, muscle torque + ligament torque + the torque of the tissue
+  reactions on the bones distal to it (contact reaches the bones through the tissue). The
+  Jacobian of the tissue torque is the FE tangent condensed on the bone rotations.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mpi4py import MPI
+
+from handfe.errors import ConfigError, InputError, SolverError
+from handfe.grasp.config import Workflow, load_workflow
+from handfe.materials import Ogden
+
+
+@dataclass
+class GraspResult:
+    regions: dict[str, dict[str, float]]
+    summary: dict[str, Any]
+    out_dir: Path | None = None
+    fingertips: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def make_obstacle(spec, H) -> Any:
+    """The object in world coordinates (the hand frame H maps hand -> world)."""
+    from handfe.contact import Capsule, Cylinder, RoundedBox, Sphere
+
+    c = H.apply(np.asarray(spec.centre_mm, dtype=float))
+    ax = H.R @ np.asarray(spec.axis, dtype=float)
+    ax = ax / np.linalg.norm(ax)
+    if spec.shape == "sphere":
+        return Sphere(centre=tuple(c), radius=spec.radius_mm)
+    if spec.shape == "cylinder":
+        return Cylinder(centre=tuple(c), axis=tuple(ax), radius=spec.radius_mm,
+                        half_length=spec.length_mm / 2,
+                        edge_radius=min(spec.edge_radius_mm, spec.radius_mm))
+    if spec.shape == "capsule":
+        h = spec.length_mm / 2
+        return Capsule(a=tuple(c - h * ax), b=tuple(c + h * ax), radius=spec.radius_mm)
+    # box: axes = rows of the hand frame rotated so that box x = spec.axis
+    e0 = ax
+    e1 = np.cross(H.R[:, 2], e0)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(e0, e1)
+    return RoundedBox(centre=tuple(c), half_sizes=tuple(spec.half_sizes_mm),
+                      rotation=tuple(map(tuple, np.stack([e0, e1, e2], axis=1))),
+                      edge_radius=spec.edge_radius_mm)
+
+
+def place_object(obstacle, spec, H, surface, regions: tuple[str, ...], source: str) -> tuple[
+        np.ndarray, float, dict[str, float]]:
+    """Snug placement (rank-0 surface data): the shift (world, mm) within the search box that
+    makes the *largest* of the per-region smallest gaps as small as possible while every gap
+    stays >= ``spec.min_clearance_mm`` (the object sits as close to every participating region
+    as the posture allows, touching none). Returns (shift, clearance_mm, gap per region)."""
+    from scipy.optimize import minimize
+
+    from handfe.grasp.outputs import region_of
+
+    tri_reg = np.array([region_of(c)[0] for c in surface.codes])
+    pts = {r: surface.points[np.unique(surface.triangles[tri_reg == r])] for r in regions
+           if np.any(tri_reg == r)}
+    allp = surface.points
+    half = np.asarray(spec.search_mm, dtype=float)
+    Rh = H.R
+    cmin = spec.min_clearance_mm
+
+    def gaps(s_h: np.ndarray) -> np.ndarray:
+        s = Rh @ s_h
+        return np.array([obstacle.gap_normal(p, s)[0].min() for p in pts.values()])
+
+    def cost(s_h: np.ndarray) -> float:
+        g = gaps(s_h)
+        g_all = obstacle.gap_normal(allp, Rh @ s_h)[0].min()
+        return float(g.max() + 100.0 * max(0.0, cmin - min(g.min(), g_all)))
+
+    axes = [np.linspace(-h, h, 11) if h > 0 else np.zeros(1) for h in half]
+    best, best_c = np.zeros(3), np.inf
+    for x in axes[0]:
+        for y in axes[1]:
+            for z in axes[2]:
+                c = cost(np.array([x, y, z]))
+                if c < best_c:
+                    best, best_c = np.array([x, y, z]), c
+    free = half > 0
+    if free.any():
+        def f(q):
+            s = best.copy()
+            s[free] = np.clip(q, -half[free], half[free])
+            return cost(s)
+        r = minimize(f, best[free], method="Nelder-Mead",
+                     options={"xatol": 0.01, "fatol": 1e-4, "maxiter": 600})
+        if r.fun < best_c:
+            best[free] = np.clip(r.x, -half[free], half[free])
+    g = gaps(best)
+    g_all = float(obstacle.gap_normal(allp, Rh @ best)[0].min())
+    clearance = min(float(g.min()), g_all)
+    if clearance < cmin - 1e-6:
+        raise ConfigError(
+            f"{source}: 'object' intersects the hand in this posture: best clearance to the skin "
+            f"{clearance:.2f} mm (< min_clearance_mm = {cmin}) within search_mm = "
+            f"{list(spec.search_mm)} around centre_mm = {list(spec.centre_mm)}; move or shrink "
+            "the object, or raise opening_deg")
+    return Rh @ best, clearance, {r: float(x) for r, x in zip(pts, g, strict=True)}
+
+
+def _pose_for(wf: Workflow, grasp, subject_dir: Path):
+    from handfe.kinematics import Pose, grasp_pose
+    from handfe.paths import REPO_ROOT
+
+    if grasp.pose == "glove":
+        return grasp_pose(subject_dir, grasp.name), "glove (mean of hold windows)"
+    p = Path(grasp.pose)
+    p = p if p.is_absolute() else REPO_ROOT / p
+    return Pose.from_toml(p), str(p)
+
+
+def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
+                 out_dir: Path | str | None = None, comm: MPI.Comm = MPI.COMM_WORLD,
+                 materials: Mapping[str, Ogden] | None = None,
+                 muscle_scale: Mapping[str, float] | None = None,
+                 loading: str | None = None, progress: bool | Callable[[str], None] = True
+                 ) -> GraspResult:
+    """Run a grasp workflow; returns per-region metrics and the summary. Writes outputs to
+    ``out_dir`` (rank 0) if given. ``materials`` overrides the skin / subcutaneous Ogden sets;
+    ``muscle_scale`` multiplies muscle forces (e.g. {"FDS": 1.1})."""
+    from handfe.anatomy import build_hand, load_subject
+    from handfe.emg import muscle_forces
+    from handfe.io import write_csv, write_json
+    from handfe.parallel import rprint
+
+    t_start = time.perf_counter()
+    stages: dict[str, float] = {}
+    wf = workflow if isinstance(workflow, Workflow) else load_workflow(workflow)
+    level = mesh or wf.mesh
+    mode = loading or wf.loading
+    if callable(progress):
+        say = progress
+    elif progress:
+        def say(msg: str) -> None:
+            rprint(f"[{time.perf_counter() - t_start:7.1f} s] {msg}", comm=comm)
+    else:
+        def say(msg: str) -> None:
+            return None
+    out = Path(out_dir) if out_dir is not None else None
+    if out is not None and comm.rank == 0:
+        out.mkdir(parents=True, exist_ok=True)
+    grasp = wf.grasp_spec()
+    subject_dir = wf.subject_dir()
+    materials = dict(materials or {})
+    bad = set(materials) - {"skin", "subcutaneous"}
+    if bad:
+        raise InputError(f"materials: unknown tissue(s) {sorted(bad)} (skin, subcutaneous)")
+    skin = materials.get("skin") or Ogden.skin(nu=wf.solver.nu)
+    subcut = materials.get("subcutaneous") or Ogden.subcutaneous(nu=wf.solver.nu)
+    summary: dict[str, Any] = {"workflow": wf.source, "grasp": grasp.name, "subject": str(
+        subject_dir), "loading": mode, "mesh": level, "element": wf.element,
+        "stages_s": stages, "status": "running"}
+
+    def checkpoint(status: str) -> None:
+        summary["status"] = status
+        summary["wall_s"] = time.perf_counter() - t_start
+        if out is not None and comm.rank == 0:
+            write_json(out / "summary.json", summary)
+
+    stage = "setup"
+    try:
+        # -- posture and muscle forces
+        t0 = time.perf_counter()
+        from handfe.grasp.mechanics import opened_pose
+
+        measured, pose_src = _pose_for(wf, grasp, subject_dir)
+        pose = opened_pose(measured, grasp.digits, grasp.opening_deg)
+        subject = load_subject(subject_dir)
+        forces = {m: f for m, (f, _sd) in muscle_forces(
+            subject_dir, grasp.name, trial=wf.trial or None).items()}
+        scale = dict(muscle_scale or {})
+        unknown = set(scale) - set(forces)
+        if unknown:
+            raise InputError(f"muscle_scale: unknown muscle(s) {sorted(unknown)} "
+                             f"(known: {', '.join(forces)})")
+        forces = {m: f * scale.get(m, 1.0) for m, f in forces.items()}
+        summary.update(pose_source=pose_src, opening_deg=grasp.opening_deg,
+                       muscle_forces_N=forces, muscle_scale=scale)
+        stages["posture_emg"] = time.perf_counter() - t0
+        say(f"{grasp.name}: posture from {pose_src}; muscle forces "
+            + ", ".join(f"{m} {f:.0f} N" for m, f in forces.items()))
+        # -- mesh
+        stage = "mesh"
+        t0 = time.perf_counter()
+        model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
+        stages["mesh"] = time.perf_counter() - t0
+        n_cells = model.mesh.topology.index_map(3).size_global
+        skipped = [d for d in ("thumb", "index", "middle", "ring", "little")
+                   if d not in grasp.digits]
+        summary["mesh_cells"] = n_cells
+        summary["skipped"] = {"digits": skipped, **({k: v for k, v in model.quality.get(
+            "skipped", {}).items()} if isinstance(model.quality.get("skipped"), dict) else {})}
+        say(f"mesh ({level}, digits {', '.join(grasp.digits)}): {n_cells} tets in "
+            f"{stages['mesh']:.1f} s" + (f"; skipped {', '.join(skipped)}" if skipped else ""))
+        # -- object placement
+        stage = "placement"
+        H = model.skeleton.hand_frame
+        obstacle = make_obstacle(grasp.object, H)
+        regions = grasp.object.placement_regions or tuple(grasp.digits) + ("palm",)
+        res = None
+        err = None
+        if comm.rank == 0:
+            try:
+                res = place_object(obstacle, grasp.object, H, model.surface, regions,
+                                   grasp.source)
+            except ConfigError as exc:
+                err = str(exc)
+        err = comm.bcast(err, root=0)
+        if err:
+            raise ConfigError(err)
+        shift, clearance, region_gaps = comm.bcast(res, root=0)
+        summary["object"] = {"shape": grasp.object.shape, "shift_mm": shift.tolist(),
+                             "initial_clearance_mm": clearance,
+                             "initial_gap_per_region_mm": region_gaps,
+                             "centre_world_mm": (np.asarray(getattr(obstacle, "centre", (
+                                 np.nan,) * 3)) + shift).tolist()}
+        say(f"object {grasp.object.shape} placed {np.linalg.norm(shift):.1f} mm from its start, "
+            f"clearance {clearance:.2f} mm")
+        # -- FE problem
+        stage = "fe-setup"
+        t0 = time.perf_counter()
+        scene = GraspFE(model, grasp, wf, skin, subcut, obstacle, shift, pose, subject, forces,
+                        say, measured)
+        stages["fe_setup"] = time.perf_counter() - t0
+        summary["dofs"] = scene.problem.num_dofs()
+        say(f"FE problem: {summary['dofs']} dofs ({wf.element}), {len(scene.joints)} released "
+            f"joints, {len(scene.lig.rows)} ligament springs")
+        checkpoint("running")
+        # -- loading
+        stage = f"loading ({mode})"
+        t0 = time.perf_counter()
+        if mode == "muscles":
+            scene.solve_muscles()
+        else:
+            scene.solve_angles()
+        stages["solve"] = time.perf_counter() - t0
+        # -- outputs
+        stage = "outputs"
+        t0 = time.perf_counter()
+        regs, fd = scene.metrics()
+        summary.update(scene.report())
+        total_f = np.sum([regs[r]["force_vector_N"] for r in (
+            "thumb", "index", "middle", "ring", "little", "palm")], axis=0)
+        summary["grip_force_N"] = float(np.linalg.norm(total_f))
+        summary["contact_force_vector_N"] = total_f.tolist()
+        tips = {d: {"mean_pressure_kPa": regs[f"{d}_distal"]["mean_pressure_kPa"],
+                    "peak_pressure_kPa": regs[f"{d}_distal"]["peak_pressure_kPa"],
+                    "contact_area_mm2": regs[f"{d}_distal"]["contact_area_mm2"]}
+                for d in ("thumb", "index", "middle", "ring", "little")}
+        if out is not None:
+            rows = [{"region": k, **{m: v[m] for m in (
+                "contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
+                "tangential_force_N")}} for k, v in regs.items()]
+            if comm.rank == 0:
+                write_csv(out / "regions.csv", rows)
+                write_csv(out / "fingertips.csv", [{"digit": d, **v} for d, v in tips.items()])
+            if wf.outputs.png:
+                from handfe.grasp.outputs import pressure_map_png
+                pressure_map_png(fd, H.R, out / "pressure.png", comm,
+                                 title=f"{grasp.name} grasp ({mode}), contact pressure")
+            if wf.outputs.fields:
+                scene.write_fields(out / "fields.xdmf")
+        stages["outputs"] = time.perf_counter() - t0
+        checkpoint("done")
+        say(f"done in {summary['wall_s']:.1f} s: grip force {summary['grip_force_N']:.1f} N, "
+            f"max penetration {summary['max_penetration_mm']:.4f} mm")
+        return GraspResult(regs, summary, out, tips)
+    except (SolverError, InputError, ConfigError) as exc:
+        summary["failed_stage"] = stage
+        summary["error"] = str(exc)
+        checkpoint("failed")
+        if isinstance(exc, SolverError):
+            raise SolverError(f"grasp {grasp.name}, stage {stage}: {exc}",
+                              load_step=exc.load_step, load_factor=exc.load_factor,
+                              residual=exc.residual) from None
+        raise
+
+
+class GraspFE:
+    """The FE model of one grasp and its two loading paths."""
+
+    def __init__(self, model, grasp, wf: Workflow, skin, subcut, obstacle, shift, pose,
+                 subject, forces, say, measured=None):
+        from dolfinx import mesh as dmesh
+
+        from handfe.contact_problem import RigidContact
+        from handfe.grasp.fe import BoneBC, GraspProblem, TwoFormNewton
+        from handfe.grasp.mechanics import Kinematics, Ligaments, muscle_torques, released_joints
+
+        self.model, self.grasp, self.wf, self.say = model, grasp, wf, say
+        self.obstacle = obstacle
+        self.problem = GraspProblem(model, skin, subcut, element=wf.element)
+        bones = list(model.bones) or [k[5:] for k in model.tags if k.startswith("bone_")]
+        self.bc = BoneBC(self.problem, model, bones)
+        ft = model.facet_tags
+        sel = np.isin(ft.values, model.groups["skin_outer"])
+        skin_tags = dmesh.meshtags(model.mesh, 2, ft.indices[sel],
+                                   np.ones(int(sel.sum()), dtype=np.int32))
+        self.skin_tags = skin_tags
+        E_eff = 3.0 * min(skin.shear_modulus_MPa, subcut.shear_modulus_MPa)
+        s = wf.solver
+        self.contact = RigidContact(self.problem, obstacle, skin_tags, 1, mu=grasp.friction,
+                                    penalty_factor=s.penalty_factor,
+                                    penetration_tol_mm=s.penetration_tol_mm,
+                                    gap_tol_mm=s.gap_tol_mm, E_eff_MPa=E_eff)
+        self.contact.translation.value = np.asarray(shift, dtype=float)
+        self.solver = TwoFormNewton(self.problem)
+        self.joints = released_joints(grasp.digits)
+        self.kin = Kinematics(subject, pose, self.joints)
+        m = measured or pose
+        self.theta_measured = np.array([m[j.dof] for j in self.joints])
+        self.lig = Ligaments(self.kin.skel0, set(bones))
+        self.forces = forces
+        self.tau_muscle = muscle_torques(forces, self.joints)
+        self.theta = self.kin.theta0.copy()
+        self.motions = self.kin.motions(self.kin.skel0)
+        self.steps: list[dict] = []
+        self.outer_iterations = 0
+        self.augmentations = 0
+        self.cuts = 0
+        self.torque: dict[str, np.ndarray] = {}
+
+    # -- one boundary-condition step with cutting
+    def _go_to(self, theta: np.ndarray, *, final: bool, label: str) -> None:
+        theta = self.kin.clamp(theta)
+        skel = self.kin.skeleton(theta)
+        target = self.kin.motions(skel)
+        prev = self.motions
+        w0 = self.problem.w.vector.copy()
+        blend, done_frac = 1.0, 0.0
+        cuts = 0
+        while done_frac < 1.0 - 1e-12:
+            frac = min(1.0, done_frac + blend)
+            self.bc.set(target, frac, prev)
+            ok, its, reason = self.solver.solve()
+            if ok:
+                n_aug = 0
+                while final and frac >= 1.0:
+                    done, pen = self.contact.augment(True)
+                    if done:
+                        break
+                    n_aug += 1
+                    self.augmentations += 1
+                    if n_aug > self.wf.solver.max_augment:
+                        ok, reason = False, f"augmented Lagrangian: penetration {pen:.3g} mm"
+                        break
+                    ok, its2, reason = self.solver.solve()
+                    its += its2
+                    if not ok:
+                        break
+            if ok:
+                self.contact.on_step(frac, None)
+                self.steps.append({"step": label, "fraction": frac, "newton": its,
+                                   "residual": self.solver.history[-1] if self.solver.history
+                                   else 0.0})
+                done_frac = frac
+                w0.destroy()
+                w0 = self.problem.w.vector.copy()
+                continue
+            w0.copy(self.problem.w.vector)
+            self.problem.w.x.scatter_forward()
+            cuts += 1
+            self.cuts += 1
+            blend /= 2
+            self.say(f"    {label}: Newton failed ({reason}); cutting the step to {blend:.3g}")
+            if cuts > 6:
+                self.bc.set(prev if done_frac == 0 else target, 1.0 if done_frac == 0 else
+                            done_frac, prev)
+                w0.destroy()
+                last = self.solver.history[-1] if self.solver.history else float("nan")
+                raise SolverError(f"load step '{label}' did not converge after {cuts} cuts "
+                                  f"(reached {done_frac:.3g} of the step): {reason}",
+                                  load_step=len(self.steps) + 1, load_factor=done_frac,
+                                  residual=last)
+        w0.destroy()
+        self.theta = theta
+        self.motions = target
+        self.skel = skel
+
+    def _joint_geometry(self, skel):
+        from handfe.grasp.mechanics import joint_axis_centre
+        return [joint_axis_centre(skel, j) for j in self.joints], \
+            [j.distal_bones for j in self.joints]
+
+    def torques(self) -> dict[str, np.ndarray]:
+        from handfe.grasp.fe import torques_from
+
+        skel = self.kin.skeleton(self.theta)
+        ac, ds = self._joint_geometry(skel)
+        R = self.solver.full_residual()
+        t_tis = torques_from(R.getArray(), self.bc, ac, ds, self.problem.comm)
+        R.destroy()
+        t_lig = self.lig.torques(self.kin.motions(skel), skel, self.joints)
+        g = self.tau_muscle + t_lig + t_tis
+        scale = np.maximum.reduce([np.abs(self.tau_muscle), np.abs(t_lig), np.abs(t_tis),
+                                   np.full(len(g), 1e-9)])
+        return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis, "residual": g,
+                "relative": np.abs(g) / scale}
+
+    def solve_angles(self) -> None:
+        s = self.wf.solver
+        n = s.closing_steps
+        total = s.closing_deg + self.grasp.opening_deg
+        for k in range(1, n + 1):
+            th = self.kin.theta0 + total * k / n
+            self.say(f"  closing {k}/{n}: +{total * k / n:.2f} deg on "
+                     f"{len(self.joints)} flexion joints")
+            self._go_to(th, final=(k == n), label=f"closing {k}/{n}")
+        self.torque = self.torques()
+
+    def solve_muscles(self) -> None:
+        from handfe.grasp.fe import condensed_torque_jacobian
+
+        s = self.wf.solver
+        self._go_to(self.theta, final=False, label="initial")
+        max_rad = math.radians(s.max_step_deg)
+        final = False
+        for it in range(1, s.max_outer + 1):
+            self.outer_iterations = it
+            tq = self.torques()
+            rel = float(tq["relative"].max())
+            pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
+            self.say(f"  torque balance {it}: max relative residual {rel:.2e}, penetration "
+                     f"{pen:.4f} mm, angles change "
+                     f"{np.abs(self.theta - self.kin.theta0).max():.2f} deg max")
+            if rel <= s.torque_rtol and pen <= s.penetration_tol_mm:
+                self.torque = tq
+                return
+            final = final or rel < 50 * s.torque_rtol
+            skel = self.kin.skeleton(self.theta)
+            ac, ds = self._joint_geometry(skel)
+            Jt = condensed_torque_jacobian(self.solver, self.bc, ac, ds, self.problem.comm)
+            Jl = np.zeros_like(Jt)
+            h = 1e-4
+            base = self.lig.torques(self.kin.motions(skel), skel, self.joints)
+            for i in range(len(self.joints)):
+                th = self.theta.copy()
+                th[i] += math.degrees(h)
+                sk = self.kin.skeleton(th)
+                Jl[:, i] = (self.lig.torques(self.kin.motions(sk), sk, self.joints) - base) / h
+            Jm = Jt + Jl
+            g = tq["residual"]
+            try:
+                d = np.linalg.solve(Jm, -g)
+            except np.linalg.LinAlgError:
+                d = np.linalg.lstsq(Jm, -g, rcond=None)[0]
+            # steepest-descent safeguard where the tangent is not restoring
+            bad = np.sign(d) != np.sign(g)
+            if bad.any() and np.any(np.diag(Jm) >= 0):
+                d = np.where(np.diag(Jm) < 0, d, np.sign(g) * max_rad)
+            m = np.abs(d).max()
+            if m > max_rad:
+                d *= max_rad / m
+            self._go_to(self.theta + np.degrees(d), final=final, label=f"torque iteration {it}")
+        tq = self.torques()
+        self.torque = tq
+        rel = float(tq["relative"].max())
+        if rel > s.torque_rtol:
+            worst = self.joints[int(np.argmax(tq["relative"]))].name
+            raise SolverError(f"torque balance not reached in {s.max_outer} iterations: max "
+                              f"relative residual {rel:.3g} at {worst}",
+                              load_step=len(self.steps), load_factor=1.0, residual=rel)
+
+    # -- outputs
+    def _fields(self):
+        import ufl
+        from dolfinx import fem
+
+        from handfe.contact import _to_p1
+
+        mesh = self.model.mesh
+        u = self.problem.displacement()
+        V1 = fem.VectorFunctionSpace(mesh, ("CG", 1))
+        u1 = fem.Function(V1, name="displacement")
+        u1.interpolate(u)
+        p1 = _to_p1(self.contact.terms.pressure, mesh, ())
+        t1 = _to_p1(self.contact.terms.tangential_traction, mesh, (3,)) \
+            if self.contact.terms.tangential_traction is not None else None
+        return u1, p1, t1, ufl
+
+    def metrics(self):
+        from handfe.grasp.outputs import facet_data, region_metrics
+
+        u1, p1, t1, _ = self._fields()
+        self._out = (u1, p1)
+        fd = facet_data(self.model, u1, p1, t1, self.obstacle, self.contact.translation.value,
+                        self.wf.solver.gap_tol_mm)
+        return region_metrics(fd, self.problem.comm), fd
+
+    def report(self) -> dict[str, Any]:
+        tq = self.torque or self.torques()
+        joints = {}
+        for i, j in enumerate(self.joints):
+            joints[j.dof] = {"measured_deg": float(self.theta_measured[i]),
+                             "start_deg": float(self.kin.theta0[i]),
+                             "equilibrium_deg": float(self.theta[i]),
+                             "muscle_Nmm": float(tq["muscle"][i]),
+                             "ligament_Nmm": float(tq["ligament"][i]),
+                             "tissue_contact_Nmm": float(tq["tissue"][i]),
+                             "residual_Nmm": float(tq["residual"][i]),
+                             "relative_residual": float(tq["relative"][i])}
+        from handfe.grasp.fe import global_equilibrium
+
+        pen = self.contact.uzawa.penetration() if self.contact.uzawa else float("nan")
+        return {"joints": joints, **global_equilibrium(self.solver, self.bc, self.problem.comm), "max_relative_torque_residual": float(tq["relative"].max()),
+                "max_penetration_mm": float(pen), "load_steps": len(self.steps),
+                "newton_iterations": int(self.solver.iterations),
+                "outer_iterations": self.outer_iterations,
+                "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
+                "penalty_N_per_mm3": float(self.contact.k_n.value),
+                "steps": self.steps}
+
+    def write_fields(self, path: Path) -> None:
+        from dolfinx import fem
+        from dolfinx.io import XDMFFile
+
+        u1, p1 = self._out
+        mesh = self.model.mesh
+        p1.name = "contact_pressure_MPa"
+        D0 = fem.FunctionSpace(mesh, ("DG", 0))
+        psi = fem.Function(D0, name="strain_energy_density_mJ_per_mm3")
+        ex = fem.Expression(self.problem.skin.w_dev(self.problem.F, {
+            "mu": self.problem.mu, "alpha": self.problem.alpha}),
+            D0.element.interpolation_points())
+        psi.interpolate(ex)
+        with XDMFFile(mesh.comm, str(path), "w") as xf:
+            xf.write_mesh(mesh)
+            xf.write_meshtags(self.model.cell_tags)
+            xf.write_function(u1)
+            xf.write_function(p1)
+            xf.write_function(psi)

@@ -1,0 +1,144 @@
+"""Grasp workflow inputs and rigid-body mechanics (no FE): configuration errors name file and
+key; object placement refuses intersections; ligament law, muscle torques and bone motions."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from handfe.anatomy import load_subject
+from handfe.anatomy.meshing import SurfaceData
+from handfe.errors import ConfigError
+from handfe.grasp import load_workflow
+from handfe.grasp.config import ObjectSpec
+from handfe.grasp.mechanics import (
+    Kinematics,
+    Ligaments,
+    ligament_force_N,
+    muscle_torques,
+    opened_pose,
+    released_joints,
+)
+from handfe.kinematics import Pose
+from handfe.paths import REPO_ROOT
+
+
+@pytest.mark.parametrize("name", ["cylindrical", "spherical", "precision"])
+def test_shipped_workflows_load(name):
+    wf = load_workflow(REPO_ROOT / "workflows" / f"{name}.toml")
+    g = wf.grasp_spec()
+    assert g.name == name and 0.0 < g.friction < 1.0
+    assert wf.subject_dir().name == "S01"
+
+
+def _write(tmp_path: Path, text: str, name: str = "wf.toml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_unknown_key_names_file_and_key(tmp_path):
+    p = _write(tmp_path, 'subject = "subjects/S01"\ngrasp = "precision"\nmeshh = "reduced"\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*meshh"):
+        load_workflow(p)
+
+
+def test_bad_values(tmp_path):
+    p = _write(tmp_path, 'grasp = "precision"\nloading = "forces"\n')
+    with pytest.raises(ConfigError, match="loading"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\ntorque_rtol = -1.0\n')
+    with pytest.raises(ConfigError, match="torque_rtol"):
+        load_workflow(p)
+
+
+def test_missing_subject_and_grasp(tmp_path):
+    p = _write(tmp_path, 'subject = "subjects/S99"\ngrasp = "precision"\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'subject'.*S99"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "lateral"\n')
+    with pytest.raises(ConfigError, match=r"'grasp' = 'lateral'.*precision"):
+        load_workflow(p)
+
+
+def test_bad_grasp_file(tmp_path):
+    g = _write(tmp_path, 'digits = ["index", "sixth"]\n', "g.toml")
+    p = _write(tmp_path, f'grasp = "{g}"\n')
+    with pytest.raises(ConfigError, match="sixth"):
+        load_workflow(p)
+    g = _write(tmp_path, '[object]\nshape = "cone"\n', "g.toml")
+    with pytest.raises(ConfigError, match=r"g\.toml.*object\.shape.*cone"):
+        load_workflow(p)
+
+
+def _ball_surface(radius: float, code: int) -> SurfaceData:
+    """A triangulated sphere of skin (one region code) centred at the origin."""
+    import scipy.spatial
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(400, 3))
+    x /= np.linalg.norm(x, axis=1)[:, None]
+    hull = scipy.spatial.ConvexHull(x)
+    return SurfaceData(radius * x, hull.simplices, np.full(len(hull.simplices), code))
+
+
+def test_placement_refuses_intersection_and_finds_snug_position():
+    from handfe.anatomy.skeleton import Frame
+    from handfe.grasp.scene import make_obstacle, place_object
+
+    H = Frame(np.eye(3), np.zeros(3))
+    surf = _ball_surface(30.0, 160)  # "palm" skin: a hollow ball of radius 30 mm
+    spec = ObjectSpec(shape="sphere", radius_mm=10.0, centre_mm=(5.0, 0.0, 0.0),
+                      search_mm=(15.0, 15.0, 15.0), min_clearance_mm=0.2)
+    ob = make_obstacle(spec, H)
+    shift, clearance, gaps = place_object(ob, spec, H, surf, ("palm",), "g.toml")
+    # inside a hollow ball the snug position touches it (gap -> min clearance)
+    assert clearance == pytest.approx(0.2, abs=0.05)
+    big = ObjectSpec(shape="sphere", radius_mm=40.0, centre_mm=(0.0, 0.0, 0.0),
+                     search_mm=(5.0, 5.0, 5.0))
+    with pytest.raises(ConfigError, match=r"g\.toml.*'object' intersects"):
+        place_object(make_obstacle(big, H), big, H, surf, ("palm",), "g.toml")
+
+
+def test_ligament_law_continuous_and_slack():
+    L0, k, et = 10.0, 40.0, 0.06
+    assert ligament_force_N(9.0, L0, k, et) == 0.0
+    e = L0 * (1 + et)
+    assert ligament_force_N(e - 1e-9, L0, k, et) == pytest.approx(
+        ligament_force_N(e + 1e-9, L0, k, et), rel=1e-6)
+    assert ligament_force_N(e + 1.0, L0, k, et) - ligament_force_N(e, L0, k, et) == \
+        pytest.approx(k)
+
+
+def test_muscle_torques_sum_shares_and_arms():
+    joints = released_joints(("index",))
+    tq = muscle_torques({"FDP": 100.0, "FDS": 0.0}, joints)
+    # FDP share 1/4 per finger, moment arms 11.0 / 7.5 / 4.5 mm (anatomy/moment_arms.csv)
+    np.testing.assert_allclose(tq, [25 * 11.0, 25 * 7.5, 25 * 4.5])
+
+
+def test_bone_motions_identity_and_rotation():
+    subj = load_subject(REPO_ROOT / "subjects" / "S01")
+    pose = Pose.from_toml(REPO_ROOT / "anatomy" / "poses" / "precision.toml")
+    joints = released_joints(("thumb", "index", "middle"))
+    kin = Kinematics(subj, pose, joints)
+    mot = kin.motions(kin.skeleton(kin.theta0))
+    for R, t in mot.values():
+        np.testing.assert_allclose(R, np.eye(3), atol=1e-12)
+        np.testing.assert_allclose(t, 0.0, atol=1e-9)
+    th = kin.theta0.copy()
+    i = [j.name for j in joints].index("index_pip")
+    th[i] += 10.0
+    mot = kin.motions(kin.skeleton(th))
+    R, _ = mot["index_mp"]
+    assert np.degrees(np.arccos((np.trace(R) - 1) / 2)) == pytest.approx(10.0, abs=1e-9)
+    np.testing.assert_allclose(mot["index_pp"][0], np.eye(3), atol=1e-12)
+    lig = Ligaments(kin.skel0, set(kin.frames0))
+    assert len(lig.rows) > 20
+
+
+def test_opened_pose_clamps_to_limits():
+    pose = Pose({"index_dip_flexion": 3.0, "index_pip_flexion": 40.0})
+    op = opened_pose(pose, ("index",), 10.0)
+    assert op["index_pip_flexion"] == pytest.approx(30.0)
+    assert op["index_dip_flexion"] >= -30.0  # clamped at the table's lower limit
