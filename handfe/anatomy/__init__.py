@@ -5,7 +5,8 @@ Public API::
 
     load_subject(subject_dir) -> Anthropometry
     build_skeleton(subject, pose) -> Skeleton                 # forward kinematics, no meshing
-    build_hand(subject, pose, *, digits=None, level="reduced", comm=MPI.COMM_WORLD) -> HandModel
+    build_hand(subject, pose, *, digits=None, level="reduced", comm=MPI.COMM_WORLD,
+               skip_far=None) -> HandModel                # level: coarse|reduced|default|fine
     write_outputs(model, out_dir) -> dict[str, Path]
 """
 

@@ -35,7 +35,7 @@ LEVELS = {  # mm: global size, size on the fingertip pads, size on the palm, siz
 }
 # whole-hand cell counts of S01 (neutral pose, `handfe anatomy --mesh LEVEL`), the basis of the
 # saving reported for partial hands; fine: default scaled by (2.0 / 1.4)^3, not measured
-WHOLE_HAND_CELLS_S01 = {"coarse": 40000, "reduced": 105868, "default": 368729,
+WHOLE_HAND_CELLS_S01 = {"coarse": 42403, "reduced": 105868, "default": 368729,
                         "fine": 1075000}
 S01_HAND_BOX_MM3 = 189.0 * 87.0 * 33.0
 FAR_TRANSITION_MM = 10.0  # partial hands: distance over which the size grows from h to h_far
@@ -194,7 +194,9 @@ def _size_fields(gmsh, skel: Skeleton, digits: tuple[str, ...], lv: dict,
     for d in digits:
         tip = [p for p in skel.primitives if p.name == f"{d}_tip"][0]
         c = tip.frame.apply(np.array([0.0, 0.0, 0.5 * tip.dims[2]]))
-        ids.append(_ball(gmsh, c, 1.4 * tip.dims[1], lv["h_pad"], h_out, 6.0))
+        # grows from h_pad to h over 6 mm (the same gradient when the far field is coarser)
+        t = 6.0 * (h_out - lv["h_pad"]) / max(lv["h"] - lv["h_pad"], 1e-9)
+        ids.append(_ball(gmsh, c, 1.4 * tip.dims[1], lv["h_pad"], h_out, t))
     if far:
         for c, r in digit_balls(skel, digits, FINE_PHALANGES):
             ids.append(_ball(gmsh, c, r, lv["h"], lv["h_far"], FAR_TRANSITION_MM))
