@@ -54,6 +54,11 @@ def test_pinch_mesh_is_small(pinch):
     assert sk["fraction_of_whole_hand"] <= 0.4
     assert set(sk["bones"]) == set(pinch.skeleton.bones) - set(pinch.bones)
     assert any("carpus" in r for r in sk["regions"])
+    # ligaments of dropped bones are listed; those from a kept bone to a cut-away carpal (a
+    # fixed point in the hand frame) separately, e.g. the thumb CMC ligaments to the trapezium
+    assert {"thumb_cmc_aol", "thumb_cmc_drl", "thumb_cmc_pol"} <= set(
+        sk["ligaments_to_dropped_carpals"]) <= set(sk["ligaments"])
+    assert not {lg["name"] for lg in pinch.ligaments} & set(sk["ligaments"])
 
 
 def test_pinch_tags_and_quality(pinch):

@@ -381,8 +381,18 @@ def whole_hand_cells_estimate(skel: Skeleton, level: str) -> int:
 def skipped_report(skel: Skeleton, digits: tuple[str, ...], level: str, kept: tuple[str, ...],
                    cells: int, skip_far: bool, h_far: float) -> dict:
     """What a partial hand leaves out and what it saves (``quality["skipped"]``)."""
+    from handfe.anatomy.tables import CARPALS, ligaments
+
     dropped_digits = [d for d in DIGITS if d not in digits]
     dropped_bones = [b for b in skel.bones if b not in kept]
+    kept_set = set(kept)
+    lig_dropped = [lg for lg in ligaments()
+                   if lg.bone_a not in kept_set or lg.bone_b not in kept_set]
+    # a ligament from a kept bone to a cut-away carpal: carpals are fixed in the hand frame,
+    # so the spring still acts (against a fixed point) although the carpal is not meshed
+    lig_carpal = [lg.name for lg in lig_dropped
+                  if {lg.bone_a, lg.bone_b} & kept_set
+                  and ({lg.bone_a, lg.bone_b} - kept_set) <= set(CARPALS)]
     whole = whole_hand_cells_estimate(skel, level)
     regions = []
     if dropped_digits:
@@ -399,6 +409,8 @@ def skipped_report(skel: Skeleton, digits: tuple[str, ...], level: str, kept: tu
     return {
         "digits": dropped_digits,
         "bones": dropped_bones,
+        "ligaments": [lg.name for lg in lig_dropped],
+        "ligaments_to_dropped_carpals": lig_carpal,
         "regions": regions,
         "cells": cells,
         "cells_whole_hand_estimate": whole if dropped_digits else cells,
