@@ -268,3 +268,46 @@ def test_refit_policy_skip_and_run(tmp_path):
     assert set(res.statuses.values()) == {"ok"}
     rows = list(csv.DictReader((tmp_path / "run" / "sensitivity_long.csv").open()))
     assert all("poor fit" in r["flag"] for r in rows if r["parameter"] == "skin")
+
+
+# --------------------------------------------------------------------------------------------
+# End to end with the FE fingertip scene (layered Ogden; P1-P0 on an h = 3 mm mesh, 0.15 N)
+# --------------------------------------------------------------------------------------------
+FE_STUDY = {"name": "fe", "kind": "fingertip", "parameters": ["skin", "force"],
+            "levels_pct": [-10, 10],
+            "fingertip": {"force_N": 0.15, "mesh": "reduced", "h_mm": 3.0, "element": "p1-p0",
+                          "force_rtol": 0.03}}
+
+
+@pytest.mark.mpi
+@pytest.mark.slow
+def test_fingertip_study_end_to_end_and_resume(tmp_path):
+    """5 FE cases (on 2 ranks: two groups of one rank), then one case file deleted and the
+    study re-run: only that case runs again and the result tables are identical."""
+    out = shared_dir(tmp_path)
+    st = study_from_dict(FE_STUDY, source="fe.toml")
+    res = run_study(st, out, progress=False, charts=False)
+    assert set(res.statuses.values()) == {"ok"}, res.statuses
+    recs = {c.id: json.loads((out / "cases" / f"{c.id}.json").read_text())
+            for c in study_cases(st)}
+    pad = {k: r["regions"]["pad"] for k, r in recs.items()}
+    for k, p in pad.items():
+        target = 0.15 * recs[k]["inputs"]["load_scale"]
+        assert p["force_N"] == pytest.approx(target, rel=0.03)
+        assert p["contact_area_mm2"] > 0 and p["peak_pressure_kPa"] >= p["mean_pressure_kPa"] > 0
+        assert p["max_penetration_mm"] <= 0.01 + 1e-9
+    # more plate force: deeper and wider; stiffer skin (+10 % stress): less deflection
+    assert pad["force_p10"]["deflection_mm"] > pad["baseline"]["deflection_mm"] > \
+        pad["force_m10"]["deflection_mm"]
+    assert pad["skin_p10"]["deflection_mm"] < pad["skin_m10"]["deflection_mm"]
+    assert recs["skin_p10"]["refit"]["stable"] and recs["skin_p10"]["refit"]["fit_max_pct"] < 1
+    before = read_tables(out) if COMM.rank == 0 else None
+    COMM.barrier()
+    if COMM.rank == 0:
+        (out / "cases" / "skin_m10.json").unlink()
+    COMM.barrier()
+    res2 = run_study(st, out, progress=False, charts=False)
+    assert res2.ran == 1 and res2.reused == 4
+    if COMM.rank == 0:
+        assert read_tables(out) == before
+    COMM.barrier()

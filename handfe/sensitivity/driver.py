@@ -135,7 +135,7 @@ def fingerprint(study: Study, case: Case) -> str:
 # --------------------------------------------------------------------------------------------
 def run_fingertip_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
     """Layered fingertip (skin over subcutaneous, both Ogden) pressed by the plate."""
-    from handfe.fingertip_scene import FingertipConfig, run
+    from handfe.fingertip_scene import FingertipCompression, FingertipConfig
 
     ft = study.fingertip
     cfg = FingertipConfig(angle_deg=ft.angle_deg, mesh=ft.mesh, h_mm=ft.h_mm,
@@ -143,7 +143,10 @@ def run_fingertip_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
                           skin_thickness_mm=ft.skin_thickness_mm,
                           material=spec.materials["subcutaneous"],
                           skin_material=spec.materials["skin"], friction=ft.friction)
-    res = run(cfg, force_N=ft.force_N * spec.load_scale, comm=comm)
+    t0 = time.perf_counter()
+    scene = FingertipCompression(cfg, comm=comm)
+    scene.push_to_force(ft.force_N * spec.load_scale, rtol=ft.force_rtol)
+    res = scene.result(time.perf_counter() - t0)
     pad = {k: float(getattr(res, k)) for k in
            ("contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "deflection_mm",
             "force_N", "tangential_force_N", "contact_length_mm", "contact_width_mm",

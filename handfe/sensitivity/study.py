@@ -60,7 +60,10 @@ class FingertipSettings:
     h_mm: float | None = field(default=None, metadata=bounds(0.2, 5.0))
     skin_thickness_mm: float = field(default=1.0, metadata=bounds(0.2, 3.0))
     friction: float = field(default=0.74, metadata=bounds(0.0, 5.0))
-    element: str = field(default="taylor-hood", metadata=choices("taylor-hood", "p2", "p1"))
+    #: relative tolerance on the plate force (force control, secant refinement)
+    force_rtol: float = field(default=0.005, metadata=bounds(1e-4, 0.1))
+    element: str = field(default="taylor-hood",
+                         metadata=choices("taylor-hood", "p2", "p1", "p1-p0"))
 
 
 @dataclass(frozen=True)
