@@ -81,3 +81,32 @@ def test_bad_loads_and_subject():
         sc.push_to_force(50.0, max_deflection_mm=0.4)
     with pytest.raises(InputError, match="exactly one"):
         run(FingertipConfig(**COARSE), comm=MPI.COMM_SELF)
+
+
+def test_default_material_is_drucker_stable():
+    """The calibrated pulp (scene default) is near-incompressible and Drucker-stable as a
+    compressible law over the scene's stretch range: uniaxial and shear 0.4-2, equibiaxial
+    0.45-2 (the nu = 0.49 fit was unstable below 0.565 / 0.67; docs/materials.md)."""
+    from handfe.fingertip_scene import default_material
+    from handfe.materials import drucker_stability
+
+    mat = default_material()
+    assert mat.nu >= 0.4999
+    uni = drucker_stability(mat, stretch_range=(0.4, 2.0), n=81, incompressible=False,
+                            modes=("uniaxial", "shear"))
+    eq = drucker_stability(mat, stretch_range=(0.45, 2.0), n=81, incompressible=False,
+                           modes=("equibiaxial",))
+    assert uni.stable and eq.stable, uni.describe() + "\n" + eq.describe()
+
+
+def test_calibration_bad_input():
+    from handfe.calibration import calibrate
+
+    with pytest.raises(InputError, match="ratio"):
+        calibrate(ratio=-1.0)
+    with pytest.raises(InputError, match="nu"):
+        calibrate(nu=0.5)
+    with pytest.raises(InputError, match="penalty_stretch"):
+        from handfe.fingertip_scene import contact_modulus_MPa
+
+        contact_modulus_MPa(MooneyRivlin.fingertip_mean(), 0.1)
