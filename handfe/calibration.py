@@ -4,14 +4,14 @@ are used; other angles and the contact-patch sizes are predictions.
 
 Law: the Mooney-Rivlin-type W = C01 (Ib2 - 3) + C20 (Ib1 - 3)^2 + (1/D1)(J - 1)^2, the family
 of the brief's published fit, near-incompressible: nu = CALIBRATION_NU = 0.49999, i.e.
-kappa = 2/D1 = 50 000 mu0 ~ 860 C20 (~2.4 MPa for the fitted set). The brief's nu = 0.49 ties
+kappa = 2/D1 = 50 000 mu0 ~ 860 C20 (~2.2 MPa for the fitted set). The brief's nu = 0.49 ties
 kappa to the tiny initial shear modulus (12 kPa for the first fit, below the 40-60 kPa
 contact pressures): that compressible set loses volume instead of stiffening and is
 Drucker-unstable in equibiaxial compression below stretch 0.67 and uniaxial below 0.565
 (docs/materials.md). Stability in stretch is independent of the overall scale s; at fixed
 C20/C01 = 117: nu = 0.4999 is stable in uniaxial and shear down to 0.3 but not in
 equibiaxial compression below 0.52 (where J = 0.36); nu = 0.49999 is stable in uniaxial and
-shear down to 0.3, equibiaxial down to 0.41, and keeps J >= 0.9 up to equibiaxial 0.6 (535
+shear down to 0.3, equibiaxial down to 0.41, and keeps J >= 0.9 up to equibiaxial 0.6 (~500
 kPa for the fitted scale, ~10x the scene's peak pressure); the incompressible limit is stable
 throughout 0.3-3.
 
