@@ -71,9 +71,9 @@ class SolverSpec:
 
     max_outer: int = field(default=30, metadata=bounds(1, 200))
     torque_rtol: float = field(default=1e-3, metadata=bounds(1e-8, 0.5))
-    max_step_deg: float = field(default=3.0, metadata=bounds(0.1, 20.0))
+    max_step_deg: float = field(default=1.5, metadata=bounds(0.1, 20.0))
     closing_deg: float = field(default=6.0, metadata=bounds(0.0, 45.0))
-    closing_steps: int = field(default=3, metadata=bounds(1, 100))
+    closing_steps: int = field(default=8, metadata=bounds(1, 100))
     penalty_factor: float = field(default=10.0, metadata=bounds(0.1, 1e6))
     penetration_tol_mm: float = field(default=0.01, metadata=bounds(1e-5, 1.0))
     gap_tol_mm: float = field(default=0.01, metadata=bounds(0.0, 1.0))

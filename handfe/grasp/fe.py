@@ -77,13 +77,15 @@ class GraspProblem:
                 len(skin.mu_MPa) != self.mu.function_space.num_sub_spaces:
             raise ValueError("skin and subcutaneous Ogden sets need the same number of terms")
         n = len(skin.mu_MPa)
+        cell_dof = self.inv_kappa.function_space.dofmap.list.array  # DG0: one dof per cell
+        cell_blk = self.mu.function_space.dofmap.list.array
         for tag, mat in ((SKIN, skin), (SUBCUT, subcutaneous), (NAIL, subcutaneous)):
-            cells = self._cells[tag]
+            cells = cell_blk[self._cells[tag]]
             mu = self.mu.x.array.reshape(-1, n)
             al = self.alpha.x.array.reshape(-1, n)
             mu[cells] = mat.mu_MPa
             al[cells] = mat.alpha
-            self.inv_kappa.x.array[cells] = 1.0 / mat.bulk_modulus_MPa
+            self.inv_kappa.x.array[cell_dof[self._cells[tag]]] = 1.0 / mat.bulk_modulus_MPa
         for f in (self.mu, self.alpha, self.inv_kappa):
             f.x.scatter_forward()
         self.skin, self.subcutaneous = skin, subcutaneous
@@ -103,6 +105,8 @@ class TwoFormNewton:
     """SNES Newton (MUMPS LU, backtracking) on R = R_tissue + R_contact with the two forms
     compiled separately; Dirichlet rows from ``problem.bcs``."""
 
+    _count = 0
+
     def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
                  max_it: int = 25):
         self.problem = problem
@@ -117,16 +121,20 @@ class TwoFormNewton:
         self.A = fem_petsc.create_matrix(self.a[0])
         self.x = self.b.duplicate()
         self.snes = PETSc.SNES().create(problem.comm)
-        self.snes.setType("newtonls")
-        self.snes.getLineSearch().setType("bt")
-        ksp = self.snes.getKSP()
-        ksp.setType("preonly")
-        pc = ksp.getPC()
-        pc.setType("lu")
-        pc.setFactorSolverType("mumps")
+        TwoFormNewton._count += 1
+        prefix = f"handfe_grasp_{TwoFormNewton._count}_"
+        self.snes.setOptionsPrefix(prefix)
+        opts = {"snes_type": "newtonls", "snes_linesearch_type": "bt", "ksp_type": "preonly",
+                "pc_type": "lu", "pc_factor_mat_solver_type": "mumps", "mat_mumps_icntl_14": 200}
+        db = PETSc.Options()
+        for k, v in opts.items():
+            db[prefix + k] = v
         self.snes.setFunction(self._residual, self.b)
         self.snes.setJacobian(self._jacobian, self.A)
         self.snes.setTolerances(rtol=rtol, atol=atol, stol=1e-14, max_it=max_it)
+        self.snes.setFromOptions()
+        for k in opts:
+            db.delValue(prefix + k)
         self.history: list[float] = []
         self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
         self.iterations = 0
@@ -146,8 +154,12 @@ class TwoFormNewton:
 
     def _jacobian(self, snes, x, A, P):
         A.zeroEntries()
-        fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs)
+        # the Dirichlet diagonal is *inserted*: contact form first with 0, tissue last with 1
+        # (and a flush between the inserted diagonal and the next added values)
         fem_petsc.assemble_matrix(A, self.a[1], bcs=self.problem.bcs, diagonal=0.0)
+        A.assemblyBegin(PETSc.Mat.AssemblyType.FLUSH)
+        A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
+        fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
 
     def solve(self) -> tuple[bool, int, str]:
@@ -226,8 +238,53 @@ class BoneBC:
             self.all_comp_dofs.append(a[a < n_owned])
         dofs = fem.locate_dofs_topological((W.sub(0), V), fdim, facets)
         self.bc_dofs_W = dofs[0]
+        self._extension_setup(V, fdim, facets)
         problem.bcs.append(fem.dirichletbc(self.ubc, dofs, W.sub(0)))
         self.bones = bones
+
+    def _extension_setup(self, V, fdim, facets) -> None:
+        """Linear-elastic extension operator (nu = 0.3, P1) used as the Newton predictor: a bone
+        increment is spread smoothly into the tissue before Newton starts, so that the first
+        iterate is not a layer of crushed elements next to the bones."""
+        mesh = V.mesh
+        _, self.V_to_W = self.problem.W.sub(0).collapse()
+        self.V_to_W = np.asarray(self.V_to_W)
+        u, v = ufl.TrialFunction(V), ufl.TestFunction(V)
+        eps = ufl.sym(ufl.grad(u))
+        a = (ufl.inner(2 * eps, ufl.sym(ufl.grad(v))) + 0.75 * ufl.div(u) * ufl.div(v)) * ufl.dx
+        self.dg = fem.Function(V)
+        self._ext_bc = fem.dirichletbc(self.dg, fem.locate_dofs_topological(V, fdim, facets))
+        self._ext_a = fem.form(a)
+        self._ext_L = fem.form(ufl.inner(fem.Constant(mesh, PETSc.ScalarType((0.0,) * 3)), v)
+                               * ufl.dx)
+        A = fem_petsc.assemble_matrix(self._ext_a, bcs=[self._ext_bc])
+        A.assemble()
+        self._ext_A = A
+        self._ext_ksp = PETSc.KSP().create(mesh.comm)
+        self._ext_ksp.setOperators(A)
+        self._ext_ksp.setType("preonly")
+        pc = self._ext_ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        self._ext_b = fem_petsc.create_vector(self._ext_L)
+        self._ext_x = fem.Function(V)
+
+    def predict(self, old_bc: np.ndarray) -> None:
+        """Add the elastic extension of (current bone displacement - ``old_bc``) to the state."""
+        self.dg.x.array[:] = self.ubc.x.array - old_bc
+        self.dg.x.scatter_forward()
+        b = self._ext_b
+        with b.localForm() as bl:
+            bl.set(0.0)
+        fem_petsc.apply_lifting(b, [self._ext_a], bcs=[[self._ext_bc]])
+        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        fem_petsc.set_bc(b, [self._ext_bc])
+        self._ext_ksp.solve(b, self._ext_x.vector)
+        self._ext_x.x.scatter_forward()
+        w = self.problem.w
+        n = len(self.V_to_W)
+        w.x.array[self.V_to_W] += self._ext_x.x.array[:n]
+        w.x.scatter_forward()
 
     def set(self, motions, blend: float = 1.0, previous=None) -> None:
         """Bone displacements from rigid motions {bone: (R, t)} (optionally blended linearly with
@@ -274,7 +331,14 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
     dofs follow (K_ff dz = -K_fb v, solved with the factorised Newton matrix), and the change of
     the bone reactions dR = K (v + dz) is turned into torques."""
     K = solver.full_matrix()
-    ksp = solver.snes.getKSP()
+    A = solver.A
+    solver._jacobian(None, None, A, None)  # Dirichlet-reduced tangent at the converged state
+    ksp = PETSc.KSP().create(comm)
+    ksp.setOperators(A)
+    ksp.setType("preonly")
+    pc = ksp.getPC()
+    pc.setType("lu")
+    pc.setFactorSolverType("mumps")
     n = len(axes_centres)
     Jm = np.zeros((n, n))
     v, y, z, dR = (K.createVecRight() for _ in range(4))
@@ -302,7 +366,7 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
         z.axpy(1.0, v)
         K.mult(z, dR)
         Jm[:, i] = torques_from(dR.getArray(), bc, axes_centres, distal_sets, comm)
-    for o in (K, v, y, z, dR):
+    for o in (K, v, y, z, dR, ksp):
         o.destroy()
     return Jm
 

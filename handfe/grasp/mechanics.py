@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from handfe.anatomy.skeleton import JOINT_NAMES, Skeleton, build_skeleton
-from handfe.anatomy.tables import DIGIT_BONES
+from handfe.anatomy.tables import CARPALS, DIGIT_BONES
 from handfe.errors import InputError
 from handfe.kinematics import Pose, joint_table
 from handfe.paths import ANATOMY_DIR
@@ -118,13 +118,19 @@ class Ligaments:
     """Ligament springs of the meshed bones, attachment points carried by the bone motions."""
 
     def __init__(self, skel0: Skeleton, kept_bones: set[str]):
+        # carpals cut away from a partial-hand mesh still anchor their ligaments: they are fixed
+        # in the hand frame (no digit flexion moves them)
+        anchors = kept_bones | set(CARPALS)
         self.rows = [lg for lg in skel0.ligaments()
-                     if lg["bone_a"] in kept_bones and lg["bone_b"] in kept_bones]
+                     if {lg["bone_a"], lg["bone_b"]} <= anchors
+                     and {lg["bone_a"], lg["bone_b"]} & kept_bones]
         self.pa0 = np.array([lg["point_a_mm"] for lg in self.rows]).reshape(-1, 3)
         self.pb0 = np.array([lg["point_b_mm"] for lg in self.rows]).reshape(-1, 3)
 
     def forces(self, motions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Attachment points a, b (n, 3) and force on b (n, 3) (force on a is its negative)."""
+        fixed = (np.eye(3), np.zeros(3))
+        motions = {**{c: fixed for c in CARPALS}, **motions}
         pa = np.array([motions[lg["bone_a"]][0] @ p + motions[lg["bone_a"]][1]
                        for lg, p in zip(self.rows, self.pa0, strict=True)]).reshape(-1, 3)
         pb = np.array([motions[lg["bone_b"]][0] @ p + motions[lg["bone_b"]][1]

@@ -341,6 +341,7 @@ class GraspFE:
         self.augmentations = 0
         self.cuts = 0
         self.torque: dict[str, np.ndarray] = {}
+        self.at_limit = np.zeros(len(self.joints), dtype=bool)
 
     # -- one boundary-condition step with cutting
     def _go_to(self, theta: np.ndarray, *, final: bool, label: str) -> None:
@@ -351,9 +352,11 @@ class GraspFE:
         w0 = self.problem.w.vector.copy()
         blend, done_frac = 1.0, 0.0
         cuts = 0
+        bc_conv = self.bc.ubc.x.array.copy()  # bone displacement of the last converged state
         while done_frac < 1.0 - 1e-12:
             frac = min(1.0, done_frac + blend)
             self.bc.set(target, frac, prev)
+            self.bc.predict(bc_conv)
             ok, its, reason = self.solver.solve()
             if ok:
                 n_aug = 0
@@ -376,6 +379,7 @@ class GraspFE:
                                    "residual": self.solver.history[-1] if self.solver.history
                                    else 0.0})
                 done_frac = frac
+                bc_conv = self.bc.ubc.x.array.copy()
                 w0.destroy()
                 w0 = self.problem.w.vector.copy()
                 continue
@@ -440,11 +444,20 @@ class GraspFE:
         for it in range(1, s.max_outer + 1):
             self.outer_iterations = it
             tq = self.torques()
-            rel = float(tq["relative"].max())
             pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
-            self.say(f"  torque balance {it}: max relative residual {rel:.2e}, penetration "
-                     f"{pen:.4f} mm, angles change "
-                     f"{np.abs(self.theta - self.kin.theta0).max():.2f} deg max")
+            g = tq["residual"]
+            # a joint at a limit and pushed beyond it stays there: its end stop reacts
+            self.at_limit = ((self.theta >= self.kin.hi - 1e-9) & (g > 0)) | (
+                (self.theta <= self.kin.lo + 1e-9) & (g < 0))
+            free = ~self.at_limit
+            relv = np.where(free, tq["relative"], 0.0)
+            rel = float(relv.max(initial=0.0))
+            k = int(np.argmax(relv))
+            self.say(f"  torque balance {it}: max relative residual {rel:.2e} at "
+                     f"{self.joints[k].name} (muscle {tq['muscle'][k]:.0f}, ligament "
+                     f"{tq['ligament'][k]:.0f}, tissue/contact {tq['tissue'][k]:.0f} N mm), "
+                     f"penetration {pen:.4f} mm, angles "
+                     + " ".join(f"{d:+.1f}" for d in self.theta - self.kin.theta0))
             if rel <= s.torque_rtol and pen <= s.penetration_tol_mm:
                 self.torque = tq
                 return
@@ -461,24 +474,22 @@ class GraspFE:
                 sk = self.kin.skeleton(th)
                 Jl[:, i] = (self.lig.torques(self.kin.motions(sk), sk, self.joints) - base) / h
             Jm = Jt + Jl
-            g = tq["residual"]
+            d = np.zeros(len(g))
+            Jf = Jm[np.ix_(free, free)]
             try:
-                d = np.linalg.solve(Jm, -g)
+                d[free] = np.linalg.solve(Jf, -g[free])
             except np.linalg.LinAlgError:
-                d = np.linalg.lstsq(Jm, -g, rcond=None)[0]
-            # steepest-descent safeguard where the tangent is not restoring
-            bad = np.sign(d) != np.sign(g)
-            if bad.any() and np.any(np.diag(Jm) >= 0):
-                d = np.where(np.diag(Jm) < 0, d, np.sign(g) * max_rad)
-            m = np.abs(d).max()
-            if m > max_rad:
-                d *= max_rad / m
+                d[free] = np.linalg.lstsq(Jf, -g[free], rcond=None)[0]
+            # each joint moves at most max_step_deg per iteration (a joint with nothing to
+            # push against yet has a tiny tangent and would otherwise take huge steps)
+            d = np.clip(d, -max_rad, max_rad)
             self._go_to(self.theta + np.degrees(d), final=final, label=f"torque iteration {it}")
         tq = self.torques()
         self.torque = tq
-        rel = float(tq["relative"].max())
+        relv = np.where(self.at_limit, 0.0, tq["relative"])
+        rel = float(relv.max(initial=0.0))
         if rel > s.torque_rtol:
-            worst = self.joints[int(np.argmax(tq["relative"]))].name
+            worst = self.joints[int(np.argmax(relv))].name
             raise SolverError(f"torque balance not reached in {s.max_outer} iterations: max "
                               f"relative residual {rel:.3g} at {worst}",
                               load_step=len(self.steps), load_factor=1.0, residual=rel)
@@ -520,11 +531,14 @@ class GraspFE:
                              "ligament_Nmm": float(tq["ligament"][i]),
                              "tissue_contact_Nmm": float(tq["tissue"][i]),
                              "residual_Nmm": float(tq["residual"][i]),
-                             "relative_residual": float(tq["relative"][i])}
+                             "relative_residual": float(tq["relative"][i]),
+                             "at_limit": bool(self.at_limit[i])}
         from handfe.grasp.fe import global_equilibrium
 
         pen = self.contact.uzawa.penetration() if self.contact.uzawa else float("nan")
-        return {"joints": joints, **global_equilibrium(self.solver, self.bc, self.problem.comm), "max_relative_torque_residual": float(tq["relative"].max()),
+        eq = global_equilibrium(self.solver, self.bc, self.problem.comm)
+        return {"joints": joints, **eq, "max_relative_torque_residual": float(
+                    np.where(self.at_limit, 0.0, tq["relative"]).max(initial=0.0)),
                 "max_penetration_mm": float(pen), "load_steps": len(self.steps),
                 "newton_iterations": int(self.solver.iterations),
                 "outer_iterations": self.outer_iterations,

@@ -1,0 +1,115 @@
+"""Grasp workflows: run time against error (issue 6).
+
+For each grasp and mesh level, run the workflow (muscle-driven by default) and compare the
+region contact areas (thumb..little, palm) and the fingertip mean pressures with the finest
+level run. Wall time: median of --repeats runs (the first run of a process also compiles the
+forms; use --repeats >= 2 or a warm cache). Partial-hand meshing ("skip what the scene does not
+need") is part of every run; its saving is in the summary's ``skipped``.
+
+    .venv/bin/python benchmarks/grasp_time_vs_error.py --grasps precision --levels coarse,reduced
+    mpirun -n 2 .venv/bin/python benchmarks/grasp_time_vs_error.py --out results/bench_grasp
+
+Writes CSV (stdout and OUT/grasp_time_vs_error.csv) and OUT/grasp_time_vs_error.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from handfe.grasp import run_workflow
+from handfe.io import write_csv
+from handfe.parallel import rprint
+
+REGIONS = ("thumb", "index", "middle", "ring", "little", "palm")
+DIGITS = REGIONS[:5]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--grasps", default="precision,spherical,cylindrical",
+                    help="comma-separated workflow names (workflows/NAME.toml)")
+    ap.add_argument("--levels", default="coarse,reduced,default",
+                    help="mesh levels, coarse to fine; the last is the reference")
+    ap.add_argument("--loading", default=None, choices=("muscles", "angles"),
+                    help="override the workflows' loading mode")
+    ap.add_argument("--repeats", type=int, default=1, help="timed runs per point (median)")
+    ap.add_argument("--out", default="results/bench_grasp", help="output folder")
+    a = ap.parse_args()
+    comm = MPI.COMM_WORLD
+    out = Path(a.out)
+    rows = []
+    for g in a.grasps.split(","):
+        runs = {}
+        for lv in a.levels.split(","):
+            times = []
+            res = None
+            for _ in range(a.repeats):
+                t0 = time.perf_counter()
+                try:
+                    res = run_workflow(g, mesh=lv, loading=a.loading, progress=False, comm=comm)
+                except Exception as exc:  # record and go on
+                    rprint(f"# {g} {lv}: failed: {exc}")
+                    res = None
+                    break
+                times.append(time.perf_counter() - t0)
+            if res is not None:
+                runs[lv] = (res, statistics.median(times))
+        if not runs:
+            continue
+        ref = runs[list(runs)[-1]][0]
+        for lv, (res, wall) in runs.items():
+            def rel(a_, b_):
+                return abs(a_ - b_) / abs(b_) if abs(b_) > 0 else (0.0 if a_ == 0 else np.inf)
+            err_area = max(rel(res.regions[r]["contact_area_mm2"],
+                               ref.regions[r]["contact_area_mm2"]) for r in REGIONS
+                           if ref.regions[r]["contact_area_mm2"] > 0)
+            err_p = max((rel(res.fingertips[d]["mean_pressure_kPa"],
+                             ref.fingertips[d]["mean_pressure_kPa"]) for d in DIGITS
+                         if ref.fingertips[d]["mean_pressure_kPa"] > 0), default=0.0)
+            rows.append({"grasp": g, "level": lv, "cells": res.summary["mesh_cells"],
+                         "dofs": res.summary["dofs"], "wall_s": wall,
+                         "newton_iterations": res.summary["newton_iterations"],
+                         "grip_force_N": res.summary["grip_force_N"],
+                         "max_rel_err_region_area": err_area,
+                         "max_rel_err_fingertip_pressure": err_p,
+                         "reference_level": list(runs)[-1]})
+            rprint(",".join(f"{v:.4g}" if isinstance(v, float) else str(v)
+                            for v in rows[-1].values()))
+            if comm.rank == 0:
+                out.mkdir(parents=True, exist_ok=True)
+                write_csv(out / "grasp_time_vs_error.csv", rows)
+    if comm.rank == 0 and rows:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4.5), dpi=110)
+        for g in dict.fromkeys(r["grasp"] for r in rows):
+            rr = [r for r in rows if r["grasp"] == g and r["level"] != r["reference_level"]]
+            if rr:
+                ax.loglog([r["wall_s"] for r in rr],
+                          [max(r["max_rel_err_region_area"], 1e-4) for r in rr], "o-",
+                          label=f"{g}: region area")
+                ax.loglog([r["wall_s"] for r in rr],
+                          [max(r["max_rel_err_fingertip_pressure"], 1e-4) for r in rr], "s--",
+                          label=f"{g}: fingertip pressure")
+                for r in rr:
+                    ax.annotate(r["level"], (r["wall_s"], max(r["max_rel_err_region_area"], 1e-4)))
+        ax.set_xlabel("wall time (s)")
+        ax.set_ylabel("max relative error vs finest level")
+        ax.legend(fontsize=7)
+        ax.grid(True, which="both", alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out / "grasp_time_vs_error.png")
+
+
+if __name__ == "__main__":
+    main()
