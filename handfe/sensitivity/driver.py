@@ -162,12 +162,19 @@ def run_grasp_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
     from handfe.grasp import load_workflow, run_workflow
 
     wf = load_workflow(study.workflow_path())
-    res = run_workflow(wf, mesh=study.mesh, out_dir=None, comm=comm, materials=spec.materials,
+    # the workflow's Poisson's ratio for the tissue (the refit is incompressible, nu-free)
+    nu = getattr(getattr(wf, "solver", None), "nu", None)
+    mats = {k: (Ogden(m.mu_MPa, m.alpha, nu=float(nu)) if nu is not None else m)
+            for k, m in spec.materials.items()}
+    res = run_workflow(wf, mesh=study.mesh, out_dir=None, comm=comm, materials=mats,
                        muscle_scale=spec.muscle_scale or None, progress=False)
     regions = {str(r): {str(k): float(v) for k, v in m.items()
                         if isinstance(v, int | float) and not isinstance(v, bool)}
                for r, m in res.regions.items()}
-    return {"regions": regions, "info": {"summary": res.summary}}
+    summary = json.loads(json.dumps(res.summary, default=str))
+    if isinstance(summary, dict) and summary.get("status") not in (None, "ok", "done"):
+        raise RuntimeError(f"grasp workflow ended with status {summary.get('status')!r}")
+    return {"regions": regions, "info": {"tissue_nu": nu, "summary": summary}}
 
 
 RUNNERS: dict[str, Callable[[Study, CaseSpec, Any], dict[str, Any]]] = {
