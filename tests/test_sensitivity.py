@@ -312,3 +312,40 @@ def test_fingertip_study_end_to_end_and_resume(tmp_path):
     if COMM.rank == 0:
         assert read_tables(out) == before
     COMM.barrier()
+
+
+def test_grasp_runner_plumbing(tmp_path, monkeypatch):
+    """The grasp case runner against handfe.grasp's API, with run_workflow replaced by a stub
+    (the real grasp solve is far too slow for a unit test)."""
+    from types import SimpleNamespace
+
+    import handfe.grasp.scene as scene
+
+    calls = []
+
+    def stub(wf, *, mesh=None, out_dir=None, comm=None, materials=None, muscle_scale=None,
+             progress=True):
+        calls.append(dict(wf=wf, mesh=mesh, materials=materials, muscle_scale=muscle_scale))
+        f = (muscle_scale or {}).get("FDP", 1.0)
+        regions = {r: {"contact_area_mm2": 50.0 * f, "mean_pressure_kPa": 30.0,
+                       "peak_pressure_kPa": 90.0, "normal_force_N": 1.5 * f,
+                       "tangential_force_N": 0.2} for r in ("thumb", "index", "middle", "palm")}
+        return SimpleNamespace(regions=regions, summary={"status": "done", "path": tmp_path})
+
+    monkeypatch.setattr(scene, "run_workflow", stub)
+    st = study_from_dict({"name": "g", "kind": "grasp", "workflow": "workflows/precision.toml",
+                          "parameters": ["skin", "FDP"], "levels_pct": [10],
+                          "regions": ["thumb", "index", "middle"]},
+                         source=str(REPO / "sensitivity" / "g.toml")).with_mesh("coarse")
+    res = run_study(st, tmp_path, progress=False, charts=False, comm=MPI.COMM_SELF)
+    assert set(res.statuses.values()) == {"ok"}
+    by_case = {("FDP" if c["muscle_scale"] else "skin" if c["materials"]["skin"].mu_MPa !=
+                Ogden.skin().mu_MPa else "baseline"): c for c in calls}
+    assert set(by_case) == {"baseline", "skin", "FDP"}
+    assert all(c["mesh"] == "coarse" for c in calls)
+    assert by_case["FDP"]["muscle_scale"] == {"FDP": pytest.approx(1.1)}
+    nu = calls[0]["wf"].solver.nu
+    assert all(m.nu == nu for c in calls for m in c["materials"].values())
+    rows = list(csv.DictReader((tmp_path / "table_FDP.csv").open()))
+    r = next(x for x in rows if x["metric"] == "normal_force_N" and x["region"] == "index")
+    assert float(r["+10% change"]) == pytest.approx(10.0, rel=1e-4)
