@@ -281,6 +281,8 @@ FE_STUDY = {"name": "fe", "kind": "fingertip", "parameters": ["skin", "force"],
 
 @pytest.mark.mpi
 @pytest.mark.slow
+@pytest.mark.skipif(COMM.size == 1, reason="runs under mpirun -n 2 (make test-mpi): ~3 min, "
+                    "not repeated serially")
 def test_fingertip_study_end_to_end_and_resume(tmp_path):
     """5 FE cases (on 2 ranks: two groups of one rank); a re-run finds them all on disk, runs
     nothing and rebuilds identical tables. (Resume after a kill / deleted files is tested with
