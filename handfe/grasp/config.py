@@ -71,9 +71,12 @@ class SolverSpec:
 
     max_outer: int = field(default=30, metadata=bounds(1, 200))
     torque_rtol: float = field(default=1e-3, metadata=bounds(1e-8, 0.5))
-    max_step_deg: float = field(default=1.5, metadata=bounds(0.1, 20.0))
+    max_step_deg: float = field(default=0.5, metadata=bounds(0.1, 20.0))
+    # angles mode: close by closing_step_deg at a time (every released joint) until the force on
+    # the object reaches target_force_N, at most opening_deg + closing_deg in all
     closing_deg: float = field(default=6.0, metadata=bounds(0.0, 45.0))
-    closing_steps: int = field(default=8, metadata=bounds(1, 100))
+    closing_step_deg: float = field(default=0.5, metadata=bounds(0.01, 10.0))
+    target_force_N: float = field(default=20.0, metadata=bounds(0.0, 2000.0))
     penalty_factor: float = field(default=10.0, metadata=bounds(0.1, 1e6))
     penetration_tol_mm: float = field(default=0.01, metadata=bounds(1e-5, 1.0))
     gap_tol_mm: float = field(default=0.01, metadata=bounds(0.0, 1.0))

@@ -70,11 +70,16 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
                     continue
                 keys[f"{r}_{ph}"] = np.array([n == (r, ph) for n in names], dtype=bool)
     pm = fd["p"].mean(axis=1) if len(codes) else np.zeros(0)
+    # contact area: the part of a facet within gap_tol of the object, or (where the Uzawa
+    # multiplier keeps a positive pressure at a small positive gap) its share of vertices with
+    # positive pressure, whichever is larger
+    frac_p = (fd["p"] > 0).mean(axis=1) if len(codes) else np.zeros(0)
+    area_c = np.maximum(fd["area_c"], frac_p * fd["area"]) if len(codes) else np.zeros(0)
     nm = fd["n"].mean(axis=1) if len(codes) else np.zeros((0, 3))
     tm = fd["t"].mean(axis=1) if len(codes) else np.zeros((0, 3))
     out = {}
     for k, m in keys.items():
-        area = comm.allreduce(float(fd["area_c"][m].sum()), op=MPI.SUM)
+        area = comm.allreduce(float(area_c[m].sum()), op=MPI.SUM)
         psum = comm.allreduce(float((pm[m] * fd["area"][m]).sum()), op=MPI.SUM)
         fvec = comm.allreduce((pm[m, None] * nm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
         tvec = comm.allreduce((tm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)

@@ -263,7 +263,11 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         summary.update(scene.report())
         total_f = np.sum([regs[r]["force_vector_N"] for r in (
             "thumb", "index", "middle", "ring", "little", "palm")], axis=0)
-        summary["grip_force_N"] = float(np.linalg.norm(total_f))
+        # net force on the object (|sum|; ~0 for a balanced pinch) and the grip force = sum of
+        # the regions' contact force magnitudes
+        summary["net_object_force_N"] = float(np.linalg.norm(total_f))
+        summary["grip_force_N"] = float(sum(regs[r]["normal_force_N"] for r in (
+            "thumb", "index", "middle", "ring", "little", "palm")))
         summary["contact_force_vector_N"] = total_f.tolist()
         tips = {d: {"mean_pressure_kPa": regs[f"{d}_distal"]["mean_pressure_kPa"],
                     "peak_pressure_kPa": regs[f"{d}_distal"]["peak_pressure_kPa"],
@@ -326,6 +330,7 @@ class GraspFE:
                                     penetration_tol_mm=s.penetration_tol_mm,
                                     gap_tol_mm=s.gap_tol_mm, E_eff_MPa=E_eff)
         self.contact.translation.value = np.asarray(shift, dtype=float)
+        self.contact.max_penalty_growth = 4.0  # stronger growth ruins Newton on the hand
         self.solver = TwoFormNewton(self.problem)
         self.joints = released_joints(grasp.digits)
         self.kin = Kinematics(subject, pose, self.joints)
@@ -388,7 +393,9 @@ class GraspFE:
             cuts += 1
             self.cuts += 1
             blend /= 2
-            self.say(f"    {label}: Newton failed ({reason}); cutting the step to {blend:.3g}")
+            hist = " ".join(f"{r:.1e}" for r in self.solver.history[-6:])
+            self.say(f"    {label}: Newton failed ({reason}; last residuals {hist}); cutting the "
+                     f"step to {blend:.3g}")
             if cuts > 6:
                 self.bc.set(prev if done_frac == 0 else target, 1.0 if done_frac == 0 else
                             done_frac, prev)
@@ -402,6 +409,32 @@ class GraspFE:
         self.theta = theta
         self.motions = target
         self.skel = skel
+
+    def augment(self) -> None:
+        """Uzawa updates until the penetration is <= the tolerance. A re-solve that fails
+        restores the last converged state and multipliers and stops (the penetration reached
+        is reported, never hidden)."""
+        c = self.contact
+        for _ in range(self.wf.solver.max_augment):
+            lam = c.lambda_n.x.array.copy()
+            k = float(c.k_n.value)
+            w0 = self.problem.w.vector.copy()
+            done, pen = c.augment(True)
+            if done:
+                w0.destroy()
+                return
+            self.augmentations += 1
+            ok, its, reason = self.solver.solve()
+            self.say(f"    Uzawa update {self.augmentations}: penetration was {pen:.4f} mm; "
+                     f"Newton {'converged' if ok else 'failed: ' + reason} ({its} iterations)")
+            if not ok:
+                w0.copy(self.problem.w.vector)
+                self.problem.w.x.scatter_forward()
+                c.lambda_n.x.array[:] = lam
+                c.k_n.value = k
+                w0.destroy()
+                return
+            w0.destroy()
 
     def _joint_geometry(self, skel):
         from handfe.grasp.mechanics import joint_axis_centre
@@ -423,15 +456,29 @@ class GraspFE:
         return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis, "residual": g,
                 "relative": np.abs(g) / scale}
 
+    def object_force_N(self) -> float:
+        from handfe.grasp.fe import global_equilibrium
+
+        return float(np.linalg.norm(global_equilibrium(self.solver, self.bc,
+                                                       self.problem.comm)["object_force_N"]))
+
     def solve_angles(self) -> None:
+        """Close every released joint by closing_step_deg at a time until the force on the
+        object reaches target_force_N (or the full opening + closing angle is used)."""
         s = self.wf.solver
-        n = s.closing_steps
         total = s.closing_deg + self.grasp.opening_deg
+        n = max(1, int(math.ceil(total / s.closing_step_deg - 1e-9)))
+        self.closing_used_deg = 0.0
         for k in range(1, n + 1):
-            th = self.kin.theta0 + total * k / n
-            self.say(f"  closing {k}/{n}: +{total * k / n:.2f} deg on "
-                     f"{len(self.joints)} flexion joints")
-            self._go_to(th, final=(k == n), label=f"closing {k}/{n}")
+            ang = min(total, k * s.closing_step_deg)
+            self._go_to(self.kin.theta0 + ang, final=False, label=f"closing {k}/{n}")
+            self.closing_used_deg = ang
+            f = self.object_force_N()
+            self.say(f"  closing +{ang:.2f} deg on {len(self.joints)} flexion joints: force on "
+                     f"the object {f:.2f} N")
+            if f >= s.target_force_N:
+                break
+        self.augment()
         self.torque = self.torques()
 
     def solve_muscles(self) -> None:
@@ -483,7 +530,9 @@ class GraspFE:
             # each joint moves at most max_step_deg per iteration (a joint with nothing to
             # push against yet has a tiny tangent and would otherwise take huge steps)
             d = np.clip(d, -max_rad, max_rad)
-            self._go_to(self.theta + np.degrees(d), final=final, label=f"torque iteration {it}")
+            self._go_to(self.theta + np.degrees(d), final=False, label=f"torque iteration {it}")
+            if final:
+                self.augment()
         tq = self.torques()
         self.torque = tq
         relv = np.where(self.at_limit, 0.0, tq["relative"])
