@@ -10,14 +10,13 @@ run of the test gave 15.7 N on its own mesh). gmsh's HXT is not bit-reproducible
 closing stops at a 0.5-deg step, so grip force varies by tens of % from mesh to mesh: a stored
 1-rank value cannot be compared tightly and no 1- vs 2-rank regression is asserted here (open).
 
-(the coarse mesh is made by gmsh's HXT, which is not bit-reproducible run to run, so the 1- vs
-2-rank comparison has a mesh-noise tolerance; the distributed solve itself is checked for
-consistency through the equilibrium and penetration assertions). Opt-in (``HANDFE_GRASP_E2E=1 make test-mpi``): on one CI run the closing failed on a fresh HXT
+Opt-in (``HANDFE_GRASP_E2E=1 make test-mpi``): on one CI run the closing failed on a fresh HXT
 mesh and the ranks fell out of step; until the contact robustness work in docs/grasp.md is
 done it is not part of the default suite.
 """
 
 import json
+import os
 
 import pytest
 from mpi4py import MPI
