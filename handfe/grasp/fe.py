@@ -375,9 +375,7 @@ def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm) -> dict:
     """Force on the object (sum of the contact residual, N) against the support reactions
     (sum of the full residual over bone and wrist nodes, N): equal at equilibrium."""
     R = solver.full_residual()
-    from dolfinx.fem import petsc as fp
-
-    Rc = fp.assemble_vector(solver.L[1])
+    Rc = fem_petsc.assemble_vector(solver.L[1])
     Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
     r, rc = R.getArray(), Rc.getArray()
     sup = np.array([r[d].sum() for d in bc.bc_comp_dofs])

@@ -210,8 +210,9 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         skipped = [d for d in ("thumb", "index", "middle", "ring", "little")
                    if d not in grasp.digits]
         summary["mesh_cells"] = n_cells
-        summary["skipped"] = {"digits": skipped, **({k: v for k, v in model.quality.get(
-            "skipped", {}).items()} if isinstance(model.quality.get("skipped"), dict) else {})}
+        from_mesh = model.quality.get("skipped")
+        summary["skipped"] = {"digits": skipped, **(from_mesh if isinstance(from_mesh, dict)
+                                                    else {})}
         say(f"mesh ({level}, digits {', '.join(grasp.digits)}): {n_cells} tets in "
             f"{stages['mesh']:.1f} s" + (f"; skipped {', '.join(skipped)}" if skipped else ""))
         # -- object placement
@@ -349,7 +350,7 @@ class GraspFE:
         self.at_limit = np.zeros(len(self.joints), dtype=bool)
 
     # -- one boundary-condition step with cutting
-    def _go_to(self, theta: np.ndarray, *, final: bool, label: str) -> None:
+    def _go_to(self, theta: np.ndarray, *, label: str) -> None:
         theta = self.kin.clamp(theta)
         skel = self.kin.skeleton(theta)
         target = self.kin.motions(skel)
@@ -363,21 +364,6 @@ class GraspFE:
             self.bc.set(target, frac, prev)
             self.bc.predict(bc_conv)
             ok, its, reason = self.solver.solve()
-            if ok:
-                n_aug = 0
-                while final and frac >= 1.0:
-                    done, pen = self.contact.augment(True)
-                    if done:
-                        break
-                    n_aug += 1
-                    self.augmentations += 1
-                    if n_aug > self.wf.solver.max_augment:
-                        ok, reason = False, f"augmented Lagrangian: penetration {pen:.3g} mm"
-                        break
-                    ok, its2, reason = self.solver.solve()
-                    its += its2
-                    if not ok:
-                        break
             if ok:
                 self.contact.on_step(frac, None)
                 self.steps.append({"step": label, "fraction": frac, "newton": its,
@@ -468,11 +454,9 @@ class GraspFE:
         s = self.wf.solver
         total = s.closing_deg + self.grasp.opening_deg
         n = max(1, int(math.ceil(total / s.closing_step_deg - 1e-9)))
-        self.closing_used_deg = 0.0
         for k in range(1, n + 1):
             ang = min(total, k * s.closing_step_deg)
-            self._go_to(self.kin.theta0 + ang, final=False, label=f"closing {k}/{n}")
-            self.closing_used_deg = ang
+            self._go_to(self.kin.theta0 + ang, label=f"closing {k}/{n}")
             f = self.object_force_N()
             self.say(f"  closing +{ang:.2f} deg on {len(self.joints)} flexion joints: force on "
                      f"the object {f:.2f} N")
@@ -485,7 +469,7 @@ class GraspFE:
         from handfe.grasp.fe import condensed_torque_jacobian
 
         s = self.wf.solver
-        self._go_to(self.theta, final=False, label="initial")
+        self._go_to(self.theta, label="initial")
         max_rad = math.radians(s.max_step_deg)
         final = False
         for it in range(1, s.max_outer + 1):
@@ -530,7 +514,7 @@ class GraspFE:
             # each joint moves at most max_step_deg per iteration (a joint with nothing to
             # push against yet has a tiny tangent and would otherwise take huge steps)
             d = np.clip(d, -max_rad, max_rad)
-            self._go_to(self.theta + np.degrees(d), final=False, label=f"torque iteration {it}")
+            self._go_to(self.theta + np.degrees(d), label=f"torque iteration {it}")
             if final:
                 self.augment()
         tq = self.torques()
@@ -545,7 +529,6 @@ class GraspFE:
 
     # -- outputs
     def _fields(self):
-        import ufl
         from dolfinx import fem
 
         from handfe.contact import _to_p1
@@ -558,12 +541,12 @@ class GraspFE:
         p1 = _to_p1(self.contact.terms.pressure, mesh, ())
         t1 = _to_p1(self.contact.terms.tangential_traction, mesh, (3,)) \
             if self.contact.terms.tangential_traction is not None else None
-        return u1, p1, t1, ufl
+        return u1, p1, t1
 
     def metrics(self):
         from handfe.grasp.outputs import facet_data, region_metrics
 
-        u1, p1, t1, _ = self._fields()
+        u1, p1, t1 = self._fields()
         self._out = (u1, p1)
         fd = facet_data(self.model, u1, p1, t1, self.obstacle, self.contact.translation.value,
                         self.wf.solver.gap_tol_mm)
