@@ -12,11 +12,14 @@ from handfe.errors import ConfigError
 from handfe.grasp import load_workflow
 from handfe.grasp.config import ObjectSpec
 from handfe.grasp.mechanics import (
+    DigitArc,
     Kinematics,
     Ligaments,
+    closed_pose,
     ligament_force_N,
     muscle_torques,
     opened_pose,
+    pre_close,
     released_joints,
 )
 from handfe.kinematics import Pose
@@ -142,3 +145,39 @@ def test_opened_pose_clamps_to_limits():
     op = opened_pose(pose, ("index",), 10.0)
     assert op["index_pip_flexion"] == pytest.approx(30.0)
     assert op["index_dip_flexion"] >= -30.0  # clamped at the table's lower limit
+
+
+def test_pre_close_stops_at_the_clearance_and_flags_a_miss():
+    """Rigid pre-closing: the index pad (points around the distal bone) closes onto a ball
+    in front of it until the gap is the clearance (bisection to 0.01 deg); a ball off the
+    flexion arc is reported as missed; the closed pose adds the angle to every released joint."""
+    from handfe.contact import Sphere
+
+    subj = load_subject(REPO_ROOT / "subjects" / "S01")
+    pose = Pose.from_toml(REPO_ROOT / "anatomy" / "poses" / "precision.toml")
+    kin = Kinematics(subj, pose, released_joints(("index",)))
+    frame = kin.skel0.bones["index_dp"].frame
+    rng = np.random.default_rng(0)
+    local = rng.normal(size=(200, 3))
+    local = 6.0 * local / np.linalg.norm(local, axis=1, keepdims=True)
+    pts = frame.o + local @ frame.R.T
+    arc = DigitArc(subj, pose, ("index",), pts, [("index", "distal")] * len(pts))
+    # a ball on the path of the pad: where the pad is after 10 deg more flexion, 8 mm ahead
+    ahead = arc.moved("index", 10.0).mean(axis=0)
+    ball = Sphere(centre=tuple(ahead + 3.0 * (ahead - pts.mean(axis=0)) / np.linalg.norm(
+        ahead - pts.mean(axis=0))), radius=5.0)
+
+    def gap(x):
+        return ball.gap_normal(x)[0]
+
+    c = pre_close(arc, gap, clearance_mm=0.5)["index"]
+    assert c.reaches and 0.0 < c.closing_deg < 20.0
+    assert c.gap_after_mm == pytest.approx(0.5, abs=0.05)
+    assert gap(arc.moved("index", c.closing_deg - 0.5)).min() > 0.5
+    far = Sphere(centre=tuple(pts.mean(axis=0) + 80.0 * frame.R[:, 0]), radius=5.0)
+    miss = pre_close(arc, lambda x: far.gap_normal(x)[0], clearance_mm=0.5)["index"]
+    assert not miss.reaches
+    closed = closed_pose(pose, {"index": c})
+    for j in released_joints(("index",)):
+        assert closed[j.dof] == pytest.approx(min(pose[j.dof] + c.closing_deg, kin.hi[
+            [k.dof for k in kin.joints].index(j.dof)]))

@@ -288,6 +288,8 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str,
     gmsh.option.setNumber("Mesh.Algorithm3D", ALGORITHM_3D)
     try:
         model.mesh.generate(3)
+        if len(model.mesh.getElementsByType(4)[0]) == 0:  # HXT failures return no tets
+            raise RuntimeError("gmsh returned an empty volume mesh")
     except Exception:
         if not skip_far or lv["h_far"] <= lv["h"]:
             raise
@@ -329,15 +331,7 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str,
     tets = np.concatenate(tets_all)
     q, min_dih = _tet_quality(X, tets)
     bone_vol = sum(4.0 / 3.0 * np.pi * np.prod(skel.bones[n].semi_axes) for n in occ_hand.bones)
-    # outer surface triangles, classified by region
-    tris = []
-    for s in occ_hand.outer_surfaces:
-        _, _, ntags = model.mesh.getElements(2, s)
-        tris.append(ntags[0].reshape(-1, 3).astype(np.int64))
-    tris = np.concatenate(tris)
-    cent = X[tris].mean(axis=1)
-    regions, phal = skel.classify(cent, digits)
-    codes = np.array([region_code(r, p) for r, p in zip(regions, phal, strict=True)])
+    tris, regions, codes = _outer_triangles(model, occ_hand, X, skel, digits)
     area = 0.5 * np.linalg.norm(np.cross(X[tris[:, 1]] - X[tris[:, 0]],
                                          X[tris[:, 2]] - X[tris[:, 0]]), axis=1)
     area_region = {r: float(area[[reg == r for reg in regions]].sum()) for r in REGIONS}
@@ -367,6 +361,80 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str,
         "meshing_time_s": round(t2 - t0, 2),
     }
     return {"quality": quality, "surface": surf}
+
+
+def _reset_gmsh(gmsh) -> None:
+    """A failed HXT run leaves gmsh 4.8 unable to mesh anything in the same session (every
+    later model comes back empty): finalize and let the next call initialise afresh."""
+    global _GMSH_READY
+    try:
+        gmsh.finalize()
+    except Exception:  # already unusable: nothing more to release
+        pass
+    _GMSH_READY = False
+
+
+def _outer_triangles(model, occ_hand, X: np.ndarray, skel: Skeleton, digits: tuple[str, ...]
+                     ) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """Outer skin triangles (gmsh node tags), their region and region code."""
+    tris = []
+    for s in occ_hand.outer_surfaces:
+        _, _, ntags = model.mesh.getElements(2, s)
+        tris.append(ntags[0].reshape(-1, 3).astype(np.int64))
+    tris = np.concatenate(tris)
+    regions, phal = skel.classify(X[tris].mean(axis=1), digits)
+    codes = np.array([region_code(r, p) for r, p in zip(regions, phal, strict=True)])
+    return tris, regions, codes
+
+
+def skin_surface(subject: Anthropometry, pose: Pose, *, digits: str | tuple[str, ...] | None
+                 = None, level: str = "coarse", comm: MPI.Comm = MPI.COMM_WORLD,
+                 skip_far: bool | None = None) -> SurfaceData:
+    """The outer skin of the posed hand as a triangle surface only (no volume mesh; a few
+    seconds of surface meshing after the OCC geometry), region-coded like the volume mesh's
+    skin facets. Built on rank 0, returned on every rank. Used to place objects and to estimate
+    contact postures before the volume mesh is made."""
+    import gmsh
+
+    if level not in LEVELS:
+        raise InputError(f"mesh level '{level}': choose from {', '.join(LEVELS)}")
+    digits = parse_digits(digits)
+    partial = digits != DIGITS
+    skip_far = partial if skip_far is None else (skip_far and partial)
+    skel = build_skeleton(subject, pose)
+    check_bones(skel)
+    surf, error = None, None
+    if comm.rank == 0:
+        global _GMSH_READY
+        if not _GMSH_READY:
+            gmsh.initialize(readConfigFiles=False)
+            _GMSH_READY = True
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("hand_surface")
+        try:
+            occ_hand = build_occ(gmsh, skel, digits, trim_carpus=skip_far)
+            lv = dict(LEVELS[level])
+            _size_fields(gmsh, skel, digits, lv, palm_contact=not skip_far, far=skip_far)
+            gmsh.model.mesh.generate(2)
+            node_tags, coords, _ = gmsh.model.mesh.getNodes()
+            X = np.zeros((int(node_tags.max()) + 1, 3))
+            X[node_tags] = coords.reshape(-1, 3)
+            tris, _, codes = _outer_triangles(gmsh.model, occ_hand, X, skel, digits)
+            used = np.unique(tris.ravel())
+            surf = SurfaceData(X[used], np.searchsorted(used, tris), codes)
+        except InputError as exc:
+            error = str(exc)
+        except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
+            error = f"surface meshing failed for pose {pose.source}: {exc}"
+        if error:
+            _reset_gmsh(gmsh)
+        else:
+            gmsh.model.remove()
+    idle_wait(comm)
+    error = comm.bcast(error, root=0)
+    if error:
+        raise InputError(error)
+    return comm.bcast(surf, root=0)
 
 
 def whole_hand_cells_estimate(skel: Skeleton, level: str) -> int:
@@ -575,7 +643,7 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
     error = comm.bcast(error, root=0)
     if error:
         if comm.rank == 0:
-            gmsh.model.remove()
+            _reset_gmsh(gmsh)
         raise InputError(error)
     msh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     if comm.rank == 0:

@@ -72,12 +72,21 @@ class SolverSpec:
     max_outer: int = field(default=30, metadata=bounds(1, 200))
     torque_rtol: float = field(default=1e-3, metadata=bounds(1e-8, 0.5))
     max_step_deg: float = field(default=0.5, metadata=bounds(0.1, 20.0))
-    # angles mode: close by closing_step_deg at a time (every released joint) until the force on
-    # the object reaches target_force_N, at most opening_deg + closing_deg in all
+    # before meshing, each digit closes rigidly (its released joints by one common angle, at
+    # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
+    pre_close: bool = True
+    preclose_clearance_mm: float = field(default=0.5, metadata=bounds(0.0, 20.0))
+    preclose_max_deg: float = field(default=60.0, metadata=bounds(0.0, 120.0))
+    # angles mode: each digit whose contact force is below digit_force_N closes its released
+    # joints by closing_step_deg per load step, at most closing_deg beyond the start posture
     closing_deg: float = field(default=6.0, metadata=bounds(0.0, 45.0))
     closing_step_deg: float = field(default=0.5, metadata=bounds(0.01, 10.0))
-    target_force_N: float = field(default=20.0, metadata=bounds(0.0, 2000.0))
+    digit_force_N: float = field(default=5.0, metadata=bounds(0.0, 2000.0))
     penalty_factor: float = field(default=10.0, metadata=bounds(0.1, 1e6))
+    # penalty continuation in the closing steps: k_n grows (up to max_penalty_growth x its
+    # start value penalty_factor x E0/h) while a step leaves more than step_penetration_mm
+    step_penetration_mm: float = field(default=0.1, metadata=bounds(1e-4, 10.0))
+    max_penalty_growth: float = field(default=1000.0, metadata=bounds(1.0, 1e6))
     penetration_tol_mm: float = field(default=0.01, metadata=bounds(1e-5, 1.0))
     gap_tol_mm: float = field(default=0.01, metadata=bounds(0.0, 1.0))
     max_augment: int = field(default=12, metadata=bounds(0, 100))
@@ -99,7 +108,9 @@ class Workflow:
     trial: int = field(default=0, metadata=bounds(0, 1000))  # 0 = mean over the trials
     loading: str = field(default="muscles", metadata=choices("muscles", "angles"))
     mesh: str = field(default="reduced", metadata=choices(*MESH_LEVELS))
-    element: str = field(default="p1-p0", metadata=choices("p1-p0", "taylor-hood"))
+    # p1-p1s: P1-P1 u-p with pressure stabilisation (locking-free, default); p1-p0: the hybrid
+    # linear tet (locks on tets, see docs/grasp.md); taylor-hood: P2-P1 (reference, ~8x dofs)
+    element: str = field(default="p1-p1s", metadata=choices("p1-p1s", "p1-p0", "taylor-hood"))
     solver: SolverSpec = field(default_factory=SolverSpec)
     outputs: Outputs = field(default_factory=Outputs)
     source: str = ""

@@ -22,6 +22,28 @@ from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
 from handfe.solver import Discretisation
 
 SKIN, SUBCUT, NAIL = 1, 2, 3
+# Brezzi-Pitkaranta weight of the equal-order pressure stabilisation (element "p1-p1s"): chosen on
+# Cook's membrane (neo-Hookean, nu = 0.499, n = 2/4/8/16): beta = 0.2 gives 4.59/7.12/8.09/
+# 8.18 mm against 8.11 mm converged Taylor-Hood (0.05: 7.84 at n = 16, still locked; 1.0: 10.1,
+# overshoots); plain P1 (= p1-p0 on tets) 3.16 mm. docs/grasp.md.
+STAB_BETA = 0.2
+
+
+class P1P1Stabilised:
+    """P1 displacement + continuous P1 pressure with Brezzi-Pitkaranta stabilisation: the
+    mixed energy gets -(beta h^2 / (2 mu0)) |grad p|^2 (h the cell diameter, mu0 the cell's
+    small-strain shear modulus). Locking-free on linear tets at about the P1 cost (one pressure
+    dof per vertex instead of one per cell as in p1-p0)."""
+
+    element = "p1-p1s"
+    degree = 1
+    qdeg = 2
+    mixed = True
+    pressure_element = ("CG", 1)
+
+
+def discretisation(element: str):
+    return P1P1Stabilised() if element == "p1-p1s" else Discretisation(element)
 
 
 class GraspProblem:
@@ -33,7 +55,7 @@ class GraspProblem:
                  nail_E_MPa: float | None = None):
         mesh = model.mesh
         self.mesh, self.comm = mesh, mesh.comm
-        self.disc = Discretisation(element)
+        self.disc = discretisation(element)
         cell = mesh.ufl_cell()
         Ve = ufl.VectorElement("CG", cell, self.disc.degree)
         family, pdeg = self.disc.pressure_element
@@ -54,18 +76,32 @@ class GraspProblem:
         self.mu = fem.Function(D0v, name="ogden_mu")
         self.alpha = fem.Function(D0v, name="ogden_alpha")
         self.inv_kappa = fem.Function(D0, name="inv_kappa")
+        self.mu0 = fem.Function(D0, name="shear_modulus")
         self._cells = {t: ct.indices[ct.values == t] for t in (SKIN, SUBCUT, NAIL)}
         self.skin, self.subcutaneous = skin, subcutaneous
+        nail = StVenantKirchhoff.nail()
+        E_nail = nail_E_MPa if nail_E_MPa is not None else nail.youngs_modulus_MPa
+        self._nail_mu0 = E_nail / (2.0 * 1.3)
         self.set_tissue(skin, subcutaneous)
         c = {"mu": self.mu, "alpha": self.alpha}
         J = ufl.det(self.F)
-        e_tissue = skin.w_dev(self.F, c) + self.p * skin.vol_G(J) \
-            - 0.5 * self.inv_kappa * self.p ** 2
-        nail = StVenantKirchhoff.nail()
-        E = nail_E_MPa if nail_E_MPa is not None else nail.youngs_modulus_MPa
-        self.nail = BoundMaterial(NeoHookean.from_E_nu(E, 0.3), mesh)
+        self.nail = BoundMaterial(NeoHookean.from_E_nu(E_nail, 0.3), mesh)
         e_nail = self.nail.mixed_energy(self.F, self.p)
-        self.energy = e_tissue * self.dx((SKIN, SUBCUT)) + e_nail * self.dx(NAIL)
+        if self.disc.degree == 1:
+            # grad u is constant on a linear tet: one point integrates W_dev(F) exactly
+            dx1 = ufl.Measure("dx", domain=mesh, subdomain_data=ct,
+                              metadata={"quadrature_degree": 1})
+            e_vol = self.p * skin.vol_G(J) - 0.5 * self.inv_kappa * self.p ** 2
+            self.energy = skin.w_dev(self.F, c) * dx1((SKIN, SUBCUT)) \
+                + e_vol * self.dx((SKIN, SUBCUT)) + e_nail * self.dx(NAIL)
+        else:
+            e_tissue = skin.w_dev(self.F, c) + self.p * skin.vol_G(J) \
+                - 0.5 * self.inv_kappa * self.p ** 2
+            self.energy = e_tissue * self.dx((SKIN, SUBCUT)) + e_nail * self.dx(NAIL)
+        if self.disc.element == "p1-p1s":
+            h = ufl.CellDiameter(mesh)
+            gp = ufl.grad(self.p)
+            self.energy -= 0.5 * STAB_BETA * h * h / self.mu0 * ufl.inner(gp, gp) * self.dx
         self.internal_residual = ufl.derivative(self.energy, self.w, self.v)
         self.extra_residual: list = []
         self.bound = {}  # RigidContact gets E_eff explicitly
@@ -86,7 +122,9 @@ class GraspProblem:
             mu[cells] = mat.mu_MPa
             al[cells] = mat.alpha
             self.inv_kappa.x.array[cell_dof[self._cells[tag]]] = 1.0 / mat.bulk_modulus_MPa
-        for f in (self.mu, self.alpha, self.inv_kappa):
+            self.mu0.x.array[cell_dof[self._cells[tag]]] = mat.shear_modulus_MPa
+        self.mu0.x.array[cell_dof[self._cells[NAIL]]] = self._nail_mu0  # neo-Hookean nail
+        for f in (self.mu, self.alpha, self.inv_kappa, self.mu0):
             f.x.scatter_forward()
         self.skin, self.subcutaneous = skin, subcutaneous
 

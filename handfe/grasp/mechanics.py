@@ -183,3 +183,114 @@ def opened_pose(pose: Pose, digits: tuple[str, ...], opening_deg: float) -> Pose
         lo = table[j.dof].min
         vals[j.dof] = max(lo, pose[j.dof] - opening_deg)
     return Pose(vals, source=f"{pose.source} opened by {opening_deg:g} deg")
+
+
+def phalanx_bone(digit: str, phalanx: str) -> str | None:
+    """The bone under a digit's skin region (``phalanx`` proximal/middle/distal); None for the
+    palm (static in the pre-closing estimate)."""
+    if digit not in DIGIT_BONES or not phalanx:
+        return None
+    bones = DIGIT_BONES[digit]
+    if digit == "thumb":
+        return {"proximal": bones[1], "distal": bones[2]}.get(phalanx)
+    return {"proximal": bones[1], "middle": bones[2], "distal": bones[3]}.get(phalanx)
+
+
+@dataclass(frozen=True)
+class DigitClosing:
+    """Rigid pre-closing of one digit: uniform flexion ``closing_deg`` added to its released
+    joints; smallest skin-object gap before and after (mm, rigid estimate)."""
+
+    digit: str
+    closing_deg: float
+    gap_before_mm: float
+    gap_after_mm: float
+    reaches: bool  # False: the digit's flexion arc misses the object within max_deg
+
+
+class DigitArc:
+    """The skin points of each digit moved rigidly with their bones while the digit's released
+    flexion joints close by a common angle phi (deg, clamped at the joint limits).
+
+    ``points`` (n, 3) mm are skin points in the posture ``pose0``; ``regions`` their (region,
+    phalanx); palm points (and the thenar) do not move."""
+
+    def __init__(self, subject, pose0: Pose, digits: tuple[str, ...], points: np.ndarray,
+                 regions: list[tuple[str, str]]):
+        self.joints = released_joints(digits)
+        self.kin = Kinematics(subject, pose0, self.joints)
+        self.points = np.asarray(points, dtype=float)
+        bone_of = [phalanx_bone(r, ph) for r, ph in regions]
+        self.groups: dict[str, dict[str, np.ndarray]] = {}
+        for d in digits:
+            idx = np.array([i for i, (r, _) in enumerate(regions)
+                            if r == d and bone_of[i] is not None], dtype=int)
+            self.groups[d] = {b: idx[[bone_of[i] == b for i in idx]]
+                              for b in {bone_of[i] for i in idx}}
+
+    def moved(self, digit: str, phi_deg: float) -> np.ndarray:
+        """The digit's skin points after closing by ``phi_deg`` (m, 3)."""
+        mask = np.array([j.digit == digit for j in self.joints])
+        theta = self.kin.theta0 + np.where(mask, phi_deg, 0.0)
+        mot = self.kin.motions(self.kin.skeleton(theta))
+        parts = [self.points[ii] @ mot[b][0].T + mot[b][1] for b, ii in self.groups[digit].items()]
+        return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+    def swept(self, digit: str, max_deg: float, step_deg: float = 2.0) -> np.ndarray:
+        """The digit's skin points at phi = 0, step, ..., max_deg, stacked (k, 3)."""
+        return np.concatenate([self.moved(digit, float(p))
+                               for p in np.arange(0.0, max_deg + 1e-9, step_deg)])
+
+
+def pre_close(arc: DigitArc, gap_fn, clearance_mm: float, max_deg: float = 60.0,
+              step_deg: float = 1.0) -> dict[str, DigitClosing]:
+    """Per-digit rigid estimate of the posture just short of contact: phi is the smallest common
+    closing angle of the digit's released joints at which its smallest gap ``gap_fn(points) ->
+    (n,)`` falls to ``clearance_mm`` (scan by ``step_deg``, then bisection to 0.01 deg). A digit
+    already within the clearance keeps phi = 0; one whose arc misses the object gets the angle
+    of its smallest gap (``reaches`` False)."""
+    out: dict[str, DigitClosing] = {}
+    for d, groups in arc.groups.items():
+        if not groups:
+            out[d] = DigitClosing(d, 0.0, float("nan"), float("nan"), False)
+            continue
+
+        def gap(phi: float, d: str = d) -> float:
+            return float(np.min(gap_fn(arc.moved(d, phi))))
+
+        g0 = gap(0.0)
+        if g0 <= clearance_mm:
+            out[d] = DigitClosing(d, 0.0, g0, g0, True)
+            continue
+        lo, best, gbest, hit = 0.0, 0.0, g0, None
+        for phi in np.arange(step_deg, max_deg + 1e-9, step_deg):
+            g = gap(float(phi))
+            if g < gbest:
+                best, gbest = float(phi), g
+            if g <= clearance_mm:
+                hit = float(phi)
+                break
+            lo = float(phi)
+        if hit is None:
+            out[d] = DigitClosing(d, best, g0, gbest, False)
+            continue
+        hi = hit
+        while hi - lo > 0.01:
+            mid = 0.5 * (lo + hi)
+            if gap(mid) > clearance_mm:
+                lo = mid
+            else:
+                hi = mid
+        out[d] = DigitClosing(d, lo, g0, gap(lo), True)
+    return out
+
+
+def closed_pose(pose: Pose, closing: dict[str, DigitClosing]) -> Pose:
+    """``pose`` with each digit's pre-closing angle added to its released joints (clamped)."""
+    table = joint_table()
+    vals = dict(pose.values)
+    for d, c in closing.items():
+        for j in released_joints((d,)):
+            lim = table[j.dof]
+            vals[j.dof] = min(lim.max, max(lim.min, pose[j.dof] + c.closing_deg))
+    return Pose(vals, source=f"{pose.source}, pre-closed to contact")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -63,12 +63,18 @@ def make_obstacle(spec, H) -> Any:
                       edge_radius=spec.edge_radius_mm)
 
 
-def place_object(obstacle, spec, H, surface, regions: tuple[str, ...], source: str) -> tuple[
+def place_object(obstacle, spec, H, surface, regions: tuple[str, ...], source: str,
+                 reach: dict[str, np.ndarray] | None = None, reach_depth_mm: float = 8.0
+                 ) -> tuple[
         np.ndarray, float, dict[str, float]]:
     """Snug placement (rank-0 surface data): the shift (world, mm) within the search box that
     makes the *largest* of the per-region smallest gaps as small as possible while every gap
     stays >= ``spec.min_clearance_mm`` (the object sits as close to every participating region
-    as the posture allows, touching none). Returns (shift, clearance_mm, gap per region)."""
+    as the posture allows, touching none). With ``reach`` ({digit: its skin points swept
+    through its closing arc}), placements where a digit's arc does not pass at least
+    ``reach_depth_mm`` into the object are penalised first (a digit whose arc only grazes the
+    object would never press on it).
+    Returns (shift, clearance_mm, gap per region at the start posture)."""
     from scipy.optimize import minimize
 
     from handfe.grasp.outputs import region_of
@@ -85,10 +91,18 @@ def place_object(obstacle, spec, H, surface, regions: tuple[str, ...], source: s
         s = Rh @ s_h
         return np.array([obstacle.gap_normal(p, s)[0].min() for p in pts.values()])
 
+    reach = {d: p for d, p in (reach or {}).items() if d in pts and len(p)}
+
     def cost(s_h: np.ndarray) -> float:
         g = gaps(s_h)
         g_all = obstacle.gap_normal(allp, Rh @ s_h)[0].min()
-        return float(g.max() + 100.0 * max(0.0, cmin - min(g.min(), g_all)))
+        c = 100.0 * max(0.0, cmin - min(g.min(), g_all))
+        if reach:
+            keys = list(pts)
+            arc = np.array([obstacle.gap_normal(reach[r], Rh @ s_h)[0].min() if r in reach
+                            else g[keys.index(r)] for r in keys])
+            return float(c + 10.0 * max(0.0, arc.max() + reach_depth_mm) + g.max())
+        return float(g.max() + c)
 
     axes = [np.linspace(-h, h, 11) if h > 0 else np.zeros(1) for h in half]
     best, best_c = np.zeros(3), np.inf
@@ -118,6 +132,20 @@ def place_object(obstacle, spec, H, surface, regions: tuple[str, ...], source: s
             f"{list(spec.search_mm)} around centre_mm = {list(spec.centre_mm)}; move or shrink "
             "the object, or raise opening_deg")
     return Rh @ best, clearance, {r: float(x) for r, x in zip(pts, g, strict=True)}
+
+
+def start_gaps(obstacle, shift: np.ndarray, surface) -> dict[str, float]:
+    """Smallest skin-object gap (mm) per region (thumb..little, palm) of a skin surface."""
+    from handfe.grasp.outputs import region_of
+
+    g = obstacle.gap_normal(surface.points, np.asarray(shift, dtype=float))[0]
+    tri_reg = np.array([region_of(c)[0] for c in surface.codes])
+    out = {}
+    for r in ("thumb", "index", "middle", "ring", "little", "palm"):
+        sel = tri_reg == r
+        if sel.any():
+            out[r] = float(g[np.unique(surface.triangles[sel])].min())
+    return out
 
 
 def _pose_for(wf: Workflow, grasp, subject_dir: Path):
@@ -201,10 +229,84 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         stages["posture_emg"] = time.perf_counter() - t0
         say(f"{grasp.name}: posture from {pose_src}; muscle forces "
             + ", ".join(f"{m} {f:.0f} N" for m, f in forces.items()))
+        # -- object placement and rigid pre-closing on the skin surface of the opened posture
+        stage = "placement"
+        t0 = time.perf_counter()
+        from handfe.anatomy.meshing import skin_surface
+        from handfe.anatomy.skeleton import build_skeleton
+        from handfe.grasp.mechanics import DigitArc, closed_pose, pre_close
+        from handfe.grasp.outputs import region_of
+
+        surf0 = skin_surface(subject, pose, digits=grasp.digits, level="coarse", comm=comm)
+        H = build_skeleton(subject, pose).hand_frame
+        obstacle = make_obstacle(grasp.object, H)
+        regions = grasp.object.placement_regions or tuple(grasp.digits) + ("palm",)
+        s = wf.solver
+        vreg: list[tuple[str, str] | None] = [None] * len(surf0.points)
+        for tri, code in zip(surf0.triangles, surf0.codes, strict=True):
+            for v in tri:
+                if vreg[v] is None:
+                    vreg[v] = region_of(code)
+        arc = DigitArc(subject, pose, grasp.digits, surf0.points,
+                       [r or ("palm", "") for r in vreg])
+        res = None
+        err = None
+        if comm.rank == 0:
+            try:
+                reach = {d: arc.swept(d, s.preclose_max_deg) for d in grasp.digits} \
+                    if s.pre_close else None
+                res = place_object(obstacle, grasp.object, H, surf0, regions, grasp.source,
+                                   reach=reach)
+            except ConfigError as exc:
+                err = str(exc)
+        err = comm.bcast(err, root=0)
+        if err:
+            raise ConfigError(err)
+        shift, clearance, region_gaps = comm.bcast(res, root=0)
+        summary["object"] = {"shape": grasp.object.shape, "shift_mm": shift.tolist(),
+                             "clearance_opened_mm": clearance,
+                             "gap_per_region_opened_mm": region_gaps,
+                             "centre_world_mm": (np.asarray(getattr(obstacle, "centre", (
+                                 np.nan,) * 3)) + shift).tolist()}
+        say(f"object {grasp.object.shape} placed {np.linalg.norm(shift):.1f} mm from its start, "
+            f"clearance {clearance:.2f} mm (opened posture)")
+        if s.pre_close:
+            closing = pre_close(arc, lambda x: obstacle.gap_normal(x, shift)[0],
+                                s.preclose_clearance_mm, max_deg=s.preclose_max_deg)
+            pose_opened = pose
+            pose = closed_pose(pose, closing)
+            summary["pre_closing"] = {d: {"closing_deg": c.closing_deg,
+                                          "gap_before_mm": c.gap_before_mm,
+                                          "gap_after_rigid_estimate_mm": c.gap_after_mm,
+                                          "reaches_object": c.reaches}
+                                      for d, c in closing.items()}
+            say("rigid pre-closing to " + f"{s.preclose_clearance_mm:g} mm: " + ", ".join(
+                f"{d} +{c.closing_deg:.1f} deg" + ("" if c.reaches else " (misses the object)")
+                for d, c in closing.items()))
+            missing = [d for d, c in closing.items() if not c.reaches]
+            if missing:
+                raise ConfigError(
+                    f"{grasp.source}: digit(s) {missing} cannot reach the object by flexion "
+                    f"within {s.preclose_max_deg:g} deg: move the object (centre_mm, search_mm) "
+                    "or drop the digit from 'digits'")
+        stages["placement"] = time.perf_counter() - t0
         # -- mesh
         stage = "mesh"
         t0 = time.perf_counter()
-        model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
+        try:
+            model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
+        except InputError as exc:
+            if not (s.pre_close and "meshing failed" in str(exc)):
+                raise
+            # the pre-closed digits' skin envelopes can overlap each other (a pinch pressing
+            # thumb and index together): mesh halfway between the opened and pre-closed
+            # postures and let the FE closing do the rest
+            closing = {d: replace(c, closing_deg=0.5 * c.closing_deg)
+                       for d, c in closing.items()}
+            pose = closed_pose(pose_opened, closing)
+            summary["pre_closing_halved"] = str(exc)
+            say("meshing the pre-closed posture failed; meshing with half the pre-closing")
+            model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
         stages["mesh"] = time.perf_counter() - t0
         n_cells = model.mesh.topology.index_map(3).size_global
         skipped = [d for d in ("thumb", "index", "middle", "ring", "little")
@@ -215,30 +317,20 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                                                     else {})}
         say(f"mesh ({level}, digits {', '.join(grasp.digits)}): {n_cells} tets in "
             f"{stages['mesh']:.1f} s" + (f"; skipped {', '.join(skipped)}" if skipped else ""))
-        # -- object placement
-        stage = "placement"
         H = model.skeleton.hand_frame
-        obstacle = make_obstacle(grasp.object, H)
-        regions = grasp.object.placement_regions or tuple(grasp.digits) + ("palm",)
-        res = None
-        err = None
+        gaps_start = None
         if comm.rank == 0:
-            try:
-                res = place_object(obstacle, grasp.object, H, model.surface, regions,
-                                   grasp.source)
-            except ConfigError as exc:
-                err = str(exc)
-        err = comm.bcast(err, root=0)
-        if err:
-            raise ConfigError(err)
-        shift, clearance, region_gaps = comm.bcast(res, root=0)
-        summary["object"] = {"shape": grasp.object.shape, "shift_mm": shift.tolist(),
-                             "initial_clearance_mm": clearance,
-                             "initial_gap_per_region_mm": region_gaps,
-                             "centre_world_mm": (np.asarray(getattr(obstacle, "centre", (
-                                 np.nan,) * 3)) + shift).tolist()}
-        say(f"object {grasp.object.shape} placed {np.linalg.norm(shift):.1f} mm from its start, "
-            f"clearance {clearance:.2f} mm")
+            gaps_start = start_gaps(obstacle, shift, model.surface)
+        gaps_start = comm.bcast(gaps_start, root=0)
+        summary["object"]["gap_per_region_start_mm"] = gaps_start
+        worst = min(gaps_start, key=gaps_start.get)
+        say("starting gaps on the mesh: " + ", ".join(f"{r} {g:.2f}" for r, g in
+                                                      gaps_start.items()) + " mm")
+        if gaps_start[worst] < 0.0:
+            raise ConfigError(
+                f"{grasp.source}: the object intersects the meshed skin of the {worst} by "
+                f"{-gaps_start[worst]:.2f} mm in the starting posture: raise "
+                "solver.preclose_clearance_mm or opening_deg, or move the object")
         # -- FE problem
         stage = "fe-setup"
         t0 = time.perf_counter()
@@ -396,6 +488,36 @@ class GraspFE:
         self.motions = target
         self.skel = skel
 
+    def _stiffen(self) -> None:
+        """Penalty continuation after an accepted step: while the penetration exceeds 1.5 x
+        ``solver.step_penetration_mm``, raise k_n (by twice the ratio to it, at most x4 per
+        re-solve and ``solver.max_penalty_growth`` x its start value) and re-solve from the
+        converged state. A soft penalty at first touch (a few contact points on very soft
+        tissue) keeps Newton robust; the stiffer one later keeps the penetration - and the
+        Uzawa phase - small once the pads have stiffened."""
+        c, s = self.contact, self.wf.solver
+        if c.uzawa is None:
+            return
+        k_max = s.max_penalty_growth * c.k_n_value
+        for _ in range(4):
+            pen = c.uzawa.penetration()
+            k = float(c.k_n.value)
+            if pen <= 1.5 * s.step_penetration_mm or k >= k_max:
+                return
+            k_new = min(k * min(4.0, 2.0 * pen / s.step_penetration_mm), k_max)
+            w0 = self.problem.w.vector.copy()
+            c.k_n.value = k_new
+            ok, its, reason = self.solver.solve()
+            self.say(f"    penalty x{k_new / c.k_n_value:.3g} (penetration was {pen:.3f} mm): "
+                     f"Newton {'converged' if ok else 'failed: ' + reason} ({its} iterations)")
+            if not ok:
+                w0.copy(self.problem.w.vector)
+                self.problem.w.x.scatter_forward()
+                c.k_n.value = k
+                w0.destroy()
+                return
+            w0.destroy()
+
     def augment(self) -> None:
         """Uzawa updates until the penetration is <= the tolerance. A re-solve that fails
         restores the last converged state and multipliers and stops (the penetration reached
@@ -442,27 +564,75 @@ class GraspFE:
         return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis, "residual": g,
                 "relative": np.abs(g) / scale}
 
-    def object_force_N(self) -> float:
-        from handfe.grasp.fe import global_equilibrium
+    def _digit_dofs(self) -> dict[str, list[np.ndarray]]:
+        """Owned displacement dofs (per component) of each participating digit's outer skin."""
+        from dolfinx import fem
 
-        return float(np.linalg.norm(global_equilibrium(self.solver, self.bc,
-                                                       self.problem.comm)["object_force_N"]))
+        from handfe.grasp.outputs import region_of
+
+        if getattr(self, "_ddofs", None) is None:
+            W = self.problem.W
+            ft = self.model.facet_tags
+            fdim = self.model.mesh.topology.dim - 1
+            n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
+            codes = np.array(self.model.groups["skin_outer"])
+            digit_of = np.array([region_of(c)[0] for c in codes])
+            self._ddofs = {}
+            for d in self.grasp.digits:
+                f = ft.indices[np.isin(ft.values, codes[digit_of == d])]
+                dd = []
+                for i in range(3):
+                    x = fem.locate_dofs_topological(W.sub(0).sub(i), fdim, f)
+                    dd.append(x[x < n_owned])
+                self._ddofs[d] = dd
+        return self._ddofs
+
+    def digit_forces(self) -> dict[str, float]:
+        """Magnitude of the contact force (N) each participating digit exerts on the object."""
+        from dolfinx.fem import petsc as fem_petsc
+        from petsc4py import PETSc
+
+        Rc = fem_petsc.assemble_vector(self.solver.L[1])
+        Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        r = Rc.getArray()
+        dd = self._digit_dofs()
+        local = np.array([[r[x].sum() for x in dd[d]] for d in self.grasp.digits])
+        Rc.destroy()
+        tot = np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
+        return {d: float(np.linalg.norm(v)) for d, v in zip(self.grasp.digits, tot, strict=True)}
 
     def solve_angles(self) -> None:
-        """Close every released joint by closing_step_deg at a time until the force on the
-        object reaches target_force_N (or the full opening + closing angle is used)."""
+        """Each digit whose contact force is below ``digit_force_N`` closes its released joints
+        by ``closing_step_deg`` per load step (the others hold), until every digit carries its
+        force or has closed by ``closing_deg`` (or sits at its joint limits); then the Uzawa
+        phase removes the remaining penetration."""
         s = self.wf.solver
-        total = s.closing_deg + self.grasp.opening_deg
-        n = max(1, int(math.ceil(total / s.closing_step_deg - 1e-9)))
-        for k in range(1, n + 1):
-            ang = min(total, k * s.closing_step_deg)
-            self._go_to(self.kin.theta0 + ang, label=f"closing {k}/{n}")
-            f = self.object_force_N()
-            self.say(f"  closing +{ang:.2f} deg on {len(self.joints)} flexion joints: force on "
-                     f"the object {f:.2f} N")
-            if f >= s.target_force_N:
+        theta = self.theta.copy()
+        closed = dict.fromkeys(self.grasp.digits, 0.0)
+        digit_of = np.array([j.digit for j in self.joints])
+        k = 0
+        while True:
+            forces = self.digit_forces()
+            active = [d for d in self.grasp.digits if forces[d] < s.digit_force_N
+                      and closed[d] < s.closing_deg - 1e-9
+                      and np.any(theta[digit_of == d] < self.kin.hi[digit_of == d] - 1e-9)]
+            if k:
+                self.say(f"  closing step {k}: digit forces " + ", ".join(
+                    f"{d} {f:.2f}" for d, f in forces.items()) + " N")
+            if not active:
                 break
+            k += 1
+            for d in active:
+                step = min(s.closing_step_deg, s.closing_deg - closed[d])
+                theta[digit_of == d] += step
+                closed[d] += step
+            theta = self.kin.clamp(theta)
+            self._go_to(theta, label=f"closing {k} ({', '.join(active)})")
+            self._stiffen()
+        self.closing_deg = closed
+        self.digit_force_N = forces
         self.augment()
+        self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
 
     def solve_muscles(self) -> None:
@@ -575,6 +745,8 @@ class GraspFE:
                 "newton_iterations": int(self.solver.iterations),
                 "outer_iterations": self.outer_iterations,
                 "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
+                "closing_deg": getattr(self, "closing_deg", {}),
+                "digit_force_N": getattr(self, "digit_force_N", {}),
                 "penalty_N_per_mm3": float(self.contact.k_n.value),
                 "steps": self.steps}
 
