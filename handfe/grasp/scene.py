@@ -96,7 +96,7 @@ def place_object(obstacle, spec, H, surface, regions: tuple[str, ...], source: s
     def cost(s_h: np.ndarray) -> float:
         g = gaps(s_h)
         g_all = obstacle.gap_normal(allp, Rh @ s_h)[0].min()
-        c = 100.0 * max(0.0, cmin - min(g.min(), g_all))
+        c = 100.0 * max(0.0, cmin + 0.02 - min(g.min(), g_all))  # margin: the optimum sits on it
         if reach:
             keys = list(pts)
             arc = np.array([obstacle.gap_normal(reach[r], Rh @ s_h)[0].min() if r in reach
@@ -424,7 +424,9 @@ class GraspFE:
                                     gap_tol_mm=s.gap_tol_mm, E_eff_MPa=E_eff)
         self.contact.translation.value = np.asarray(shift, dtype=float)
         self.contact.max_penalty_growth = 4.0  # stronger growth ruins Newton on the hand
-        self.solver = TwoFormNewton(self.problem)
+        # contact Newton often converges linearly for a while (active set settling): 40
+        # iterations before a cut wastes less than restarting a halved step
+        self.solver = TwoFormNewton(self.problem, max_it=40)
         self.joints = released_joints(grasp.digits)
         self.kin = Kinematics(subject, pose, self.joints)
         m = measured or pose
@@ -440,6 +442,7 @@ class GraspFE:
         self.cuts = 0
         self.torque: dict[str, np.ndarray] = {}
         self.at_limit = np.zeros(len(self.joints), dtype=bool)
+        self._substep = 1.0  # fraction of a load step tried first (adapted in _go_to)
 
     # -- one boundary-condition step with cutting
     def _go_to(self, theta: np.ndarray, *, label: str) -> None:
@@ -448,7 +451,9 @@ class GraspFE:
         target = self.kin.motions(skel)
         prev = self.motions
         w0 = self.problem.w.vector.copy()
-        blend, done_frac = 1.0, 0.0
+        # start from the sub-step size that worked last time (no 25 wasted iterations on a
+        # full step that failed just before); it grows again after easy solves
+        blend, done_frac = min(1.0, self._substep), 0.0
         cuts = 0
         bc_conv = self.bc.ubc.x.array.copy()  # bone displacement of the last converged state
         while done_frac < 1.0 - 1e-12:
@@ -462,6 +467,9 @@ class GraspFE:
                                    "residual": self.solver.history[-1] if self.solver.history
                                    else 0.0})
                 done_frac = frac
+                if its <= 8:
+                    blend = min(1.0, 2.0 * blend)
+                self._substep = blend
                 bc_conv = self.bc.ubc.x.array.copy()
                 w0.destroy()
                 w0 = self.problem.w.vector.copy()
@@ -471,6 +479,7 @@ class GraspFE:
             cuts += 1
             self.cuts += 1
             blend /= 2
+            self._substep = blend
             hist = " ".join(f"{r:.1e}" for r in self.solver.history[-6:])
             self.say(f"    {label}: Newton failed ({reason}; last residuals {hist}); cutting the "
                      f"step to {blend:.3g}")
