@@ -86,7 +86,7 @@ class SolverSpec:
     # penalty continuation in the closing steps: k_n grows (up to max_penalty_growth x its
     # start value penalty_factor x E0/h) while a step leaves more than step_penetration_mm
     step_penetration_mm: float = field(default=0.1, metadata=bounds(1e-4, 10.0))
-    max_penalty_growth: float = field(default=1000.0, metadata=bounds(1.0, 1e6))
+    max_penalty_growth: float = field(default=30.0, metadata=bounds(1.0, 1e6))
     penetration_tol_mm: float = field(default=0.01, metadata=bounds(1e-5, 1.0))
     gap_tol_mm: float = field(default=0.01, metadata=bounds(0.0, 1.0))
     max_augment: int = field(default=12, metadata=bounds(0, 100))

@@ -293,20 +293,27 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         # -- mesh
         stage = "mesh"
         t0 = time.perf_counter()
-        try:
-            model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
-        except InputError as exc:
-            if not (s.pre_close and "meshing failed" in str(exc)):
-                raise
-            # the pre-closed digits' skin envelopes can overlap each other (a pinch pressing
-            # thumb and index together): mesh halfway between the opened and pre-closed
-            # postures and let the FE closing do the rest
-            closing = {d: replace(c, closing_deg=0.5 * c.closing_deg)
-                       for d, c in closing.items()}
-            pose = closed_pose(pose_opened, closing)
-            summary["pre_closing_halved"] = str(exc)
-            say("meshing the pre-closed posture failed; meshing with half the pre-closing")
-            model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
+        # an OCC/HXT failure at the pre-closed posture (two skin surfaces that nearly touch make
+        # the surface mesh self-intersect) is retried at nearby postures: 0.3 deg less closing,
+        # then 3/4, 1/2 and none of the pre-closing; the FE closing covers the difference
+        tries = [(1.0, 0.0), (1.0, 0.3), (0.75, 0.0), (0.5, 0.0), (0.0, 0.0)] \
+            if s.pre_close else [(1.0, 0.0)]
+        failures = []
+        for k, (factor, minus) in enumerate(tries):
+            if k:
+                pose = closed_pose(pose_opened, {d: replace(c, closing_deg=max(
+                    0.0, factor * c.closing_deg - minus)) for d, c in closing.items()})
+                say(f"meshing failed ({failures[-1][:80]}...); retrying with {factor:g} x "
+                    f"the pre-closing - {minus:g} deg")
+            try:
+                model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
+                break
+            except InputError as exc:
+                failures.append(str(exc))
+                if k == len(tries) - 1 or "meshing failed" not in str(exc):
+                    raise
+        if failures:
+            summary["meshing_failures"] = failures
         stages["mesh"] = time.perf_counter() - t0
         n_cells = model.mesh.topology.index_map(3).size_global
         skipped = [d for d in ("thumb", "index", "middle", "ring", "little")
@@ -443,6 +450,8 @@ class GraspFE:
         self.torque: dict[str, np.ndarray] = {}
         self.at_limit = np.zeros(len(self.joints), dtype=bool)
         self._substep = 1.0  # fraction of a load step tried first (adapted in _go_to)
+        self._dw: np.ndarray | None = None  # last accepted state increment (secant predictor)
+        self._dbc = 0.0  # norm of the bone displacement increment of that step
 
     # -- one boundary-condition step with cutting
     def _go_to(self, theta: np.ndarray, *, label: str) -> None:
@@ -451,6 +460,7 @@ class GraspFE:
         target = self.kin.motions(skel)
         prev = self.motions
         w0 = self.problem.w.vector.copy()
+        w0_arr = self.problem.w.x.array.copy()
         # start from the sub-step size that worked last time (no 25 wasted iterations on a
         # full step that failed just before); it grows again after easy solves
         blend, done_frac = min(1.0, self._substep), 0.0
@@ -459,9 +469,26 @@ class GraspFE:
         while done_frac < 1.0 - 1e-12:
             frac = min(1.0, done_frac + blend)
             self.bc.set(target, frac, prev)
+            dbc = self._norm(self.bc.ubc.x.array - bc_conv)
+            w = self.problem.w
+            start = w.x.array.copy()
             self.bc.predict(bc_conv)
+            if self._dw is not None and cuts == 0 and self._dbc > 0.0:
+                # two predictors, the one with the smaller residual wins: the elastic extension
+                # of the bone motion (robust far from contact, but it pushes loaded pads into
+                # the object) and the secant one, the last accepted increment scaled by the bone
+                # motion (it carries the contact response; overshoots when the pads stiffen)
+                r_ext = self._residual_norm()
+                ext = w.x.array.copy()
+                w.x.array[:] = start + (dbc / self._dbc) * self._dw
+                w.x.scatter_forward()
+                if self._residual_norm() > r_ext:
+                    w.x.array[:] = ext
+                    w.x.scatter_forward()
             ok, its, reason = self.solver.solve()
             if ok:
+                self._dw = self.problem.w.x.array - w0_arr
+                self._dbc = dbc
                 self.contact.on_step(frac, None)
                 self.steps.append({"step": label, "fraction": frac, "newton": its,
                                    "residual": self.solver.history[-1] if self.solver.history
@@ -473,6 +500,7 @@ class GraspFE:
                 bc_conv = self.bc.ubc.x.array.copy()
                 w0.destroy()
                 w0 = self.problem.w.vector.copy()
+                w0_arr = self.problem.w.x.array.copy()
                 continue
             w0.copy(self.problem.w.vector)
             self.problem.w.x.scatter_forward()
@@ -496,6 +524,20 @@ class GraspFE:
         self.theta = theta
         self.motions = target
         self.skel = skel
+
+    def _residual_norm(self) -> float:
+        """Norm of the Newton residual (Dirichlet rows included) at the current state, N."""
+        x = self.problem.w.vector.copy()
+        b = x.duplicate()
+        self.solver._residual(None, x, b)
+        n = b.norm()
+        x.destroy()
+        b.destroy()
+        return float(n)
+
+    def _norm(self, a: np.ndarray) -> float:
+        """Global 2-norm of a nodal array (ghosts counted on both ranks: fine for ratios)."""
+        return float(np.sqrt(self.problem.comm.allreduce(float(a @ a), op=MPI.SUM)))
 
     def _stiffen(self) -> None:
         """Penalty continuation after an accepted step: while the penetration exceeds 1.5 x
