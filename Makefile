@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(VENV)/bin/handfe demo
+	$(MPIRUN) $(VENV)/bin/handfe demo
 
 # MPI-2 regression tests first, then the full serial suite (whose pytest summary ends the log).
 test: setup

@@ -29,12 +29,12 @@ def run(args: argparse.Namespace) -> int:
     steps = []
     # the furthest stage of the pipeline that exists is run; earlier stages are quick checks
     if importlib.util.find_spec("handfe.commands.run") and (
-            Path(__file__).resolve().parents[2] / "workflows" / "precision.toml").exists():
-        # the precision grasp on the coarse mesh: the whole-hand cylindrical workflow on the
-        # reduced mesh takes > 15 min on 2 cores today (docs/grasp.md)
-        wf = str(Path(__file__).resolve().parents[2] / "workflows" / "precision.toml")
-        steps.append(("precision grasp (tripod pinch), coarse mesh", [
-            "run", wf, "--mesh", "coarse", "--out", str(out / "precision")]))
+            Path(__file__).resolve().parents[2] / "workflows" / "cylindrical.toml").exists():
+        # the whole-hand cylindrical grasp on the coarse mesh (~20-40 min on 2 cores); the
+        # reduced mesh (93k dofs) costs ~10 s per Newton iteration today (docs/grasp.md)
+        wf = str(Path(__file__).resolve().parents[2] / "workflows" / "cylindrical.toml")
+        steps.append(("cylindrical power grasp, whole hand, coarse mesh", [
+            "run", wf, "--mesh", "coarse", "--out", str(out / "cylindrical")]))
     elif importlib.util.find_spec("handfe.commands.fingertip"):
         steps.append(("fingertip compression, 15 deg, 2 N", [
             "fingertip", "--angle", "15", "--force", "2", "--mesh", "reduced", "--out",

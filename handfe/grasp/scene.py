@@ -450,6 +450,7 @@ class GraspFE:
         self.torque: dict[str, np.ndarray] = {}
         self.at_limit = np.zeros(len(self.joints), dtype=bool)
         self._substep = 1.0  # fraction of a load step tried first (adapted in _go_to)
+        self.stalled: dict[str, str] = {}  # angles mode: digits whose closing step failed
         self._dw: np.ndarray | None = None  # last accepted state increment (secant predictor)
         self._dbc = 0.0  # norm of the bone displacement increment of that step
 
@@ -665,7 +666,7 @@ class GraspFE:
         while True:
             forces = self.digit_forces()
             active = [d for d in self.grasp.digits if forces[d] < s.digit_force_N
-                      and closed[d] < s.closing_deg - 1e-9
+                      and closed[d] < s.closing_deg - 1e-9 and d not in self.stalled
                       and np.any(theta[digit_of == d] < self.kin.hi[digit_of == d] - 1e-9)]
             if k:
                 self.say(f"  closing step {k}: digit forces " + ", ".join(
@@ -673,12 +674,23 @@ class GraspFE:
             if not active:
                 break
             k += 1
+            inc = {}
             for d in active:
-                step = min(s.closing_step_deg, s.closing_deg - closed[d])
-                theta[digit_of == d] += step
-                closed[d] += step
+                inc[d] = min(s.closing_step_deg, s.closing_deg - closed[d])
+                theta[digit_of == d] += inc[d]
+                closed[d] += inc[d]
             theta = self.kin.clamp(theta)
-            self._go_to(theta, label=f"closing {k} ({', '.join(active)})")
+            try:
+                self._go_to(theta, label=f"closing {k} ({', '.join(active)})")
+            except SolverError as exc:
+                # keep the last converged state: these digits hold where they are, the others
+                # go on; the summary says which digits stalled and why (never hidden)
+                self.stalled.update({d: str(exc) for d in active})
+                self.say(f"    {', '.join(active)} stop closing here: {exc}")
+                theta = self.theta.copy()
+                for d in active:
+                    closed[d] -= inc[d]
+                continue
             self._stiffen()
         self.closing_deg = closed
         self.digit_force_N = forces
@@ -797,6 +809,7 @@ class GraspFE:
                 "outer_iterations": self.outer_iterations,
                 "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
                 "closing_deg": getattr(self, "closing_deg", {}),
+                "stalled_digits": self.stalled,
                 "digit_force_N": getattr(self, "digit_force_N", {}),
                 "penalty_N_per_mm3": float(self.contact.k_n.value),
                 "steps": self.steps}
