@@ -41,6 +41,7 @@ class FingertipConfig:
     penalty_factor: float = 10.0
     penalty_stretch: float = 1.0
     newton_atol_N: float = 1e-8
+    newton_linesearch: str = "bt"
     gap_tol_mm: float = 0.01
     penetration_tol_mm: float = 0.01
     nail_E_MPa: float = 170.0
@@ -246,10 +247,29 @@ class FingertipCompression:
         # stagnates at round-off ~1e-9 N; the solver's 1e-10 N default then fails converged
         # steps (seen: DIVERGED_MAX_IT at |R| = 1.8e-9 N and a needless step cut). 1e-8 N is
         # 1e-6 of the 0.5 % force tolerance at 2 N.
-        res = solve(self.problem, set_load, augment=self.contact.augment, on_step=on_step,
-                    newton=NewtonOptions(atol=self.cfg.newton_atol_N),
-                    stepping=LoadStepping(initial=initial, min_step=1.0 / 256),
-                    progress=self.progress)
+        # Line search (cfg.newton_linesearch): "bt" stays the default until the scene tests
+        # pass with "basic" (not verified: the test run did not finish in time). Measured
+        # (reduced mesh, 2 ranks, calibrated pulp, plate 0 -> 0.125 mm): the backtracking
+        # line search ("bt") crawls in ~5 % residual decrements (20 iterations), the full
+        # step converges quadratically in 4.
+        # 4 N reduced with "basic": 3.125 mm, 238 iterations, 375 s (bt: 3.141, 375, 846 s).
+        # If a segment fails with the full step, it is retried from the last converged state
+        # with "bt" (robust, slow).
+        def run_solve(ls: str):
+            return solve(self.problem, set_load, augment=self.contact.augment, on_step=on_step,
+                         newton=NewtonOptions(atol=self.cfg.newton_atol_N, linesearch=ls),
+                         stepping=LoadStepping(initial=initial, min_step=1.0 / 256),
+                         progress=self.progress)
+
+        try:
+            res = run_solve(self.cfg.newton_linesearch)
+        except SolverError:
+            if self.cfg.newton_linesearch == "bt":
+                raise
+            if self.progress:
+                self.progress("  segment failed with full Newton steps: retrying with bt")
+            d0 = self.deflection
+            res = run_solve("bt")
         self.results.append(res)
         self.deflection = d_target
         return res
