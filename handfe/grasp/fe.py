@@ -158,24 +158,32 @@ class TwoFormNewton:
         self.b = fem_petsc.create_vector(self.L[0])
         self.A = fem_petsc.create_matrix(self.a[0])
         self.x = self.b.duplicate()
-        self.snes = PETSc.SNES().create(problem.comm)
+        self.history: list[float] = []
+        # backtracking by default; "basic" (full Newton steps) as the fallback where the
+        # backtracking stalls at a kink of the contact law (semi-smooth residual)
+        self._snes = {ls: self._make_snes(ls, rtol, atol, max_it) for ls in ("bt", "basic")}
+        self.snes = self._snes["bt"]
+        self.iterations = 0
+
+    def _make_snes(self, line_search: str, rtol: float, atol: float, max_it: int) -> PETSc.SNES:
+        snes = PETSc.SNES().create(self.problem.comm)
         TwoFormNewton._count += 1
         prefix = f"handfe_grasp_{TwoFormNewton._count}_"
-        self.snes.setOptionsPrefix(prefix)
-        opts = {"snes_type": "newtonls", "snes_linesearch_type": "bt", "ksp_type": "preonly",
-                "pc_type": "lu", "pc_factor_mat_solver_type": "mumps", "mat_mumps_icntl_14": 200}
+        snes.setOptionsPrefix(prefix)
+        opts = {"snes_type": "newtonls", "snes_linesearch_type": line_search,
+                "ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps",
+                "mat_mumps_icntl_14": 200}
         db = PETSc.Options()
         for k, v in opts.items():
             db[prefix + k] = v
-        self.snes.setFunction(self._residual, self.b)
-        self.snes.setJacobian(self._jacobian, self.A)
-        self.snes.setTolerances(rtol=rtol, atol=atol, stol=1e-14, max_it=max_it)
-        self.snes.setFromOptions()
+        snes.setFunction(self._residual, self.b)
+        snes.setJacobian(self._jacobian, self.A)
+        snes.setTolerances(rtol=rtol, atol=atol, stol=1e-14, max_it=max_it)
+        snes.setFromOptions()
         for k in opts:
             db.delValue(prefix + k)
-        self.history: list[float] = []
-        self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
-        self.iterations = 0
+        snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
+        return snes
 
     def _residual(self, snes, x, b):
         p = self.problem
@@ -200,16 +208,17 @@ class TwoFormNewton:
         fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
 
-    def solve(self) -> tuple[bool, int, str]:
-        self.history = []
+    def solve(self, line_search: str = "bt") -> tuple[bool, int, str]:
+        self.history.clear()
         p = self.problem
         p.w.vector.copy(self.x)
+        snes = self._snes[line_search]
         try:
-            self.snes.solve(None, self.x)
+            snes.solve(None, self.x)
         except PETSc.Error as exc:
-            return False, self.snes.getIterationNumber(), f"PETSc error {exc}"
-        reason = self.snes.getConvergedReason()
-        its = self.snes.getIterationNumber()
+            return False, snes.getIterationNumber(), f"PETSc error {exc}"
+        reason = snes.getConvergedReason()
+        its = snes.getIterationNumber()
         self.iterations += its
         ok = reason > 0 and all(np.isfinite(self.history))
         if ok:
@@ -236,7 +245,7 @@ class TwoFormNewton:
         return K
 
     def destroy(self) -> None:
-        for o in (self.snes, self.A, self.b, self.x):
+        for o in (*self._snes.values(), self.A, self.b, self.x):
             o.destroy()
 
 

@@ -483,10 +483,23 @@ class GraspFE:
                 ext = w.x.array.copy()
                 w.x.array[:] = start + (dbc / self._dbc) * self._dw
                 w.x.scatter_forward()
-                if self._residual_norm() > r_ext:
+                r_sec = self._residual_norm()
+                if not (np.isfinite(r_sec) and r_sec < r_ext):  # NaN: inverted cells
                     w.x.array[:] = ext
                     w.x.scatter_forward()
             ok, its, reason = self.solver.solve()
+            if not ok and np.isfinite(self.solver.history[-1] if self.solver.history else 0.0):
+                # backtracking stalled (a kink of the contact law): full Newton steps from the
+                # same start before cutting the step
+                hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
+                w0.copy(self.problem.w.vector)
+                self.problem.w.x.scatter_forward()
+                self.bc.predict(bc_conv)
+                its0 = its
+                ok, its, reason = self.solver.solve("basic")
+                self.say(f"    {label}: backtracking failed ({hist}); full Newton steps "
+                         f"{'converged' if ok else 'failed too'} ({its} iterations)")
+                its += its0
             if ok:
                 self._dw = self.problem.w.x.array - w0_arr
                 self._dbc = dbc
