@@ -312,8 +312,9 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                 failures.append(str(exc))
                 if k == len(tries) - 1 or "meshing failed" not in str(exc):
                     raise
-        if failures:
+        if failures:  # the angles in "pre_closing" were scaled by factor, minus minus_deg
             summary["meshing_failures"] = failures
+            summary["pre_closing_used"] = {"factor": factor, "minus_deg": minus}
         stages["mesh"] = time.perf_counter() - t0
         n_cells = model.mesh.topology.index_map(3).size_global
         skipped = [d for d in ("thumb", "index", "middle", "ring", "little")
