@@ -571,18 +571,28 @@ class GraspFE:
             if pen <= 1.5 * s.step_penetration_mm or k >= k_max:
                 return
             k_new = min(k * min(4.0, 2.0 * pen / s.step_penetration_mm), k_max)
-            w0 = self.problem.w.vector.copy()
             c.k_n.value = k_new
-            ok, its, reason = self.solver.solve()
-            self.say(f"    penalty x{k_new / c.k_n_value:.3g} (penetration was {pen:.3f} mm): "
-                     f"Newton {'converged' if ok else 'failed: ' + reason} ({its} iterations)")
-            if not ok:
-                w0.copy(self.problem.w.vector)
-                self.problem.w.x.scatter_forward()
+
+            def undo(k: float = k) -> None:
                 c.k_n.value = k
-                w0.destroy()
+
+            if not self._resolve(f"penalty x{k_new / c.k_n_value:.3g} (penetration was "
+                                 f"{pen:.3f} mm)", undo):
                 return
-            w0.destroy()
+
+    def _resolve(self, what: str, undo: Callable[[], None]) -> bool:
+        """Re-solve after a change of the contact data; on failure restore the last converged
+        state and call ``undo`` (which restores the data). Says how it went."""
+        w0 = self.problem.w.vector.copy()
+        ok, its, reason = self.solver.solve()
+        self.say(f"    {what}: Newton {'converged' if ok else 'failed: ' + reason} "
+                 f"({its} iterations)")
+        if not ok:
+            w0.copy(self.problem.w.vector)
+            self.problem.w.x.scatter_forward()
+            undo()
+        w0.destroy()
+        return ok
 
     def augment(self) -> None:
         """Uzawa updates until the penetration is <= the tolerance. A re-solve that fails
@@ -592,23 +602,18 @@ class GraspFE:
         for _ in range(self.wf.solver.max_augment):
             lam = c.lambda_n.x.array.copy()
             k = float(c.k_n.value)
-            w0 = self.problem.w.vector.copy()
-            done, pen = c.augment(True)
+            done, pen = c.augment(True)  # changes the multipliers (and k_n), not the state
             if done:
-                w0.destroy()
                 return
             self.augmentations += 1
-            ok, its, reason = self.solver.solve()
-            self.say(f"    Uzawa update {self.augmentations}: penetration was {pen:.4f} mm; "
-                     f"Newton {'converged' if ok else 'failed: ' + reason} ({its} iterations)")
-            if not ok:
-                w0.copy(self.problem.w.vector)
-                self.problem.w.x.scatter_forward()
+
+            def undo(lam: np.ndarray = lam, k: float = k) -> None:
                 c.lambda_n.x.array[:] = lam
                 c.k_n.value = k
-                w0.destroy()
+
+            if not self._resolve(f"Uzawa update {self.augmentations} (penetration was "
+                                 f"{pen:.4f} mm)", undo):
                 return
-            w0.destroy()
 
     def _joint_geometry(self, skel):
         from handfe.grasp.mechanics import joint_axis_centre
