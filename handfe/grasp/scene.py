@@ -461,8 +461,7 @@ class GraspFE:
         skel = self.kin.skeleton(theta)
         target = self.kin.motions(skel)
         prev = self.motions
-        w0 = self.problem.w.vector.copy()
-        w0_arr = self.problem.w.x.array.copy()
+        w0 = self.problem.w.x.array.copy()  # last converged state (with ghosts)
         # start from the sub-step size that worked last time (no 25 wasted iterations on a
         # full step that failed just before); it grows again after easy solves
         blend, done_frac = min(1.0, self._substep), 0.0
@@ -473,7 +472,6 @@ class GraspFE:
             self.bc.set(target, frac, prev)
             dbc = self._norm(self.bc.ubc.x.array - bc_conv)
             w = self.problem.w
-            start = w.x.array.copy()
             self.bc.predict(bc_conv)
             if self._dw is not None and cuts == 0 and self._dbc > 0.0:
                 # two predictors, the one with the smaller residual wins: the elastic extension
@@ -482,19 +480,16 @@ class GraspFE:
                 # motion (it carries the contact response; overshoots when the pads stiffen)
                 r_ext = self._residual_norm()
                 ext = w.x.array.copy()
-                w.x.array[:] = start + (dbc / self._dbc) * self._dw
-                w.x.scatter_forward()
+                self._set_state(w0 + (dbc / self._dbc) * self._dw)
                 r_sec = self._residual_norm()
                 if not (np.isfinite(r_sec) and r_sec < r_ext):  # NaN: inverted cells
-                    w.x.array[:] = ext
-                    w.x.scatter_forward()
+                    self._set_state(ext)
             ok, its, reason = self.solver.solve()
             if not ok and np.isfinite(self.solver.history[-1] if self.solver.history else 0.0):
                 # backtracking stalled (a kink of the contact law): full Newton steps from the
                 # same start before cutting the step
                 hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
-                w0.copy(self.problem.w.vector)
-                self.problem.w.x.scatter_forward()
+                self._set_state(w0)
                 self.bc.predict(bc_conv)
                 its0 = its
                 ok, its, reason = self.solver.solve("basic")
@@ -502,7 +497,7 @@ class GraspFE:
                          f"{'converged' if ok else 'failed too'} ({its} iterations)")
                 its += its0
             if ok:
-                self._dw = self.problem.w.x.array - w0_arr
+                self._dw = self.problem.w.x.array - w0
                 self._dbc = dbc
                 self.contact.on_step(frac, None)
                 self.steps.append({"step": label, "fraction": frac, "newton": its,
@@ -513,12 +508,9 @@ class GraspFE:
                     blend = min(1.0, 2.0 * blend)
                 self._substep = blend
                 bc_conv = self.bc.ubc.x.array.copy()
-                w0.destroy()
-                w0 = self.problem.w.vector.copy()
-                w0_arr = self.problem.w.x.array.copy()
+                w0 = self.problem.w.x.array.copy()
                 continue
-            w0.copy(self.problem.w.vector)
-            self.problem.w.x.scatter_forward()
+            self._set_state(w0)
             cuts += 1
             self.cuts += 1
             blend /= 2
@@ -529,13 +521,11 @@ class GraspFE:
             if cuts > 6:
                 self.bc.set(prev if done_frac == 0 else target, 1.0 if done_frac == 0 else
                             done_frac, prev)
-                w0.destroy()
                 last = self.solver.history[-1] if self.solver.history else float("nan")
                 raise SolverError(f"load step '{label}' did not converge after {cuts} cuts "
                                   f"(reached {done_frac:.3g} of the step): {reason}",
                                   load_step=len(self.steps) + 1, load_factor=done_frac,
                                   residual=last)
-        w0.destroy()
         self.theta = theta
         self.motions = target
         self.skel = skel
@@ -580,18 +570,21 @@ class GraspFE:
                                  f"{pen:.3f} mm)", undo):
                 return
 
+    def _set_state(self, arr: np.ndarray) -> None:
+        """Set the state (u, p) from a local array with ghosts."""
+        self.problem.w.x.array[:] = arr
+        self.problem.w.x.scatter_forward()
+
     def _resolve(self, what: str, undo: Callable[[], None]) -> bool:
         """Re-solve after a change of the contact data; on failure restore the last converged
         state and call ``undo`` (which restores the data). Says how it went."""
-        w0 = self.problem.w.vector.copy()
+        w0 = self.problem.w.x.array.copy()
         ok, its, reason = self.solver.solve()
         self.say(f"    {what}: Newton {'converged' if ok else 'failed: ' + reason} "
                  f"({its} iterations)")
         if not ok:
-            w0.copy(self.problem.w.vector)
-            self.problem.w.x.scatter_forward()
+            self._set_state(w0)
             undo()
-        w0.destroy()
         return ok
 
     def augment(self) -> None:
