@@ -54,8 +54,8 @@ def _check_common(res, out, digits):
 @pytest.mark.slow
 @pytest.mark.skipif(COMM.size == 1, reason="2-rank regression; runs under make test-mpi")
 @pytest.mark.skipif(os.environ.get("HANDFE_GRASP_E2E") != "1",
-                    reason="opt-in (HANDFE_GRASP_E2E=1): the closing can stall on some HXT "
-                    "meshes (docs/grasp.md), which would make CI flaky")
+                    reason="opt-in (HANDFE_GRASP_E2E=1): a run takes ~10 min and its closing can "
+                    "stall (docs/grasp.md), over the 3-min CI budget")
 def test_precision_angles_two_ranks(tmp_path_factory):
     out = tmp_path_factory.mktemp("precision") if COMM.rank == 0 else None
     out = COMM.bcast(out, root=0)
