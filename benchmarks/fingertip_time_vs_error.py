@@ -46,6 +46,9 @@ def main() -> None:
     ap.add_argument("--no-warmup", action="store_true",
                     help="skip the untimed warm-up solve per element (forms already cached)")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per point (median)")
+    ap.add_argument("--max-repeat-s", type=float, default=None,
+                    help="no repeats for a point whose first run took longer than this (s): "
+                         "the fine reference levels are then timed once (column 'runs')")
     ap.add_argument("--out", default="results/bench_fingertip", help="output folder")
     a = ap.parse_args()
     comm = MPI.COMM_WORLD
@@ -68,7 +71,9 @@ def main() -> None:
         for h in sizes:
             times, cpus, loads, res = [], [], [], None
             for _ in range(a.repeats):
-                if over_budget() and times:
+                # rank 0's time decides, so every rank stops at the same point
+                if times and (over_budget() or (a.max_repeat_s is not None and comm.bcast(
+                        times[0], root=0) > a.max_repeat_s)):
                     break
                 loads.append(os.getloadavg()[0])
                 t0, c0 = time.perf_counter(), time.process_time()

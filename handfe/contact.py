@@ -52,6 +52,17 @@ enough for monotonic loading); for stick that persists over many steps keep the 
 it only where the node slipped (:func:`friction_anchor_update`). ``mu`` default 0.74 (brief §1);
 ``mu = 0`` gives frictionless contact and no tangential terms.
 
+Augmented friction (optional ``lambda_t``, a vector Function of tangential multipliers, MPa)::
+
+    v     = (I - n n) . lambda_t - k_t s
+    t_T   = v                       if |v| <= mu p         (stick)
+    t_T   = mu p v / |v|            otherwise              (slip)
+
+The Uzawa update ``lambda_t <- t_T`` (with ``lambda_n <- p``) carries the stick traction in the
+multiplier, so the stick creep ``|t_T - lambda_t| / k_t`` goes to zero with the updates and a
+soft stick spring (a smooth Newton) no longer means soft friction. ``lambda_t = None`` is the
+penalty law above.
+
 All tractions are true (Cauchy) tractions per *deformed* area: the residual is integrated over
 the reference facets with Nanson's factor ``da = J |F^-T N| dA``, so the contact force is
 ``int p n da`` exactly as :func:`contact_metrics` reports it.
@@ -498,7 +509,7 @@ def deformed_area_factor(u):
 
 def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
                       mu: Any = 0.0, k_t: Any = None, u_ref=None,
-                      translation_ref=None) -> ContactTerms:
+                      translation_ref=None, lambda_t=None) -> ContactTerms:
     """Contact residual contribution for the tissue displacement ``u`` (vector Function, mm),
     test function ``v``, a rigid ``obstacle`` translated by ``translation`` (Constant, mm), on
     the measure ``ds_c`` (e.g. ``ds(tag)``; set its quadrature degree in the metadata).
@@ -508,7 +519,8 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
     mu: friction coefficient (float or Constant; the Python float 0 switches friction off).
     k_t: tangential stick stiffness [N/mm^3] (default k_n). u_ref: vector Function, the
     displacement at the stick anchor (previous converged step for incremental friction);
-    translation_ref: Constant, the obstacle translation at the anchor."""
+    translation_ref: Constant, the obstacle translation at the anchor. lambda_t: vector
+    Function of tangential Uzawa multipliers [MPa] (augmented friction) or None."""
     ufl = _ufl()
     X = ufl.SpatialCoordinate(extract_unique_domain(u))
     x = X + u
@@ -526,9 +538,14 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
         kt = k_n if k_t is None else k_t
         Pt = ufl.Identity(len(u)) - ufl.outer(n, n)
         s = Pt * ((u - u_ref) - (translation - translation_ref))
-        s_norm = ufl.sqrt(ufl.max_value(ufl.dot(s, s), EPS**2))
         limit = mu * p
-        tT = ufl.conditional(ufl.gt(kt * s_norm, limit), -limit * s / s_norm, -kt * s)
+        if lambda_t is None:
+            s_norm = ufl.sqrt(ufl.max_value(ufl.dot(s, s), EPS**2))
+            tT = ufl.conditional(ufl.gt(kt * s_norm, limit), -limit * s / s_norm, -kt * s)
+        else:
+            trial = Pt * lambda_t - kt * s
+            t_norm = ufl.sqrt(ufl.max_value(ufl.dot(trial, trial), EPS**2))
+            tT = ufl.conditional(ufl.gt(t_norm, limit), limit * trial / t_norm, trial)
     residual = -ufl.inner(p * n + tT, v) * area * ds_c
     return ContactTerms(residual=residual, gap=g, normal=n, pressure=p,
                         tangential_traction=tT, area_factor=area, lambda_n=lambda_n)

@@ -64,23 +64,46 @@ class RigidContact:
     ``mu`` friction coefficient (0 = frictionless); ``penalty_factor`` multiplies
     E_tissue / h; ``augmented`` = Uzawa updates until penetration <= ``penetration_tol_mm``;
     ``gap_tol_mm`` defines the contact area in :meth:`metrics`. ``E_eff_MPa`` defaults to the
-    smallest small-strain Young's modulus of the problem's materials."""
+    smallest small-strain Young's modulus of the problem's materials.
+
+    ``augmented_friction`` (with ``augmented`` and mu > 0): tangential Uzawa multipliers carry
+    the stick traction, and the updates go on until the stick creep is also below
+    ``stick_tol_mm`` (default ``penetration_tol_mm``; see :mod:`handfe.contact`). The stick
+    spring is then ``stick_ratio`` x k_n: a softer spring keeps Newton smooth where nodes
+    switch between stick and slip, and the multipliers make stick exact anyway. Otherwise the
+    stick spring k_t = k_n is the only stick stiffness (creep |t_T| / k_t).
+
+    ``adaptive_penalty`` c (None = off): after each Uzawa update k_n moves towards
+    c * p_peak / h (p_peak the largest multiplier, h the facet size), at most doubling per
+    update and never falling. For strain-stiffening tissue (the fingertip pulp has almost no
+    small-strain stiffness) the E0-based k_n is right at first touch and ~1000x too soft at
+    4 N; a penalty that follows the pressure keeps the number of Uzawa updates small."""
 
     def __init__(self, problem: HyperelasticProblem, obstacle: Any, facet_tags, tag: int, *,
                  mu: float = 0.74, penalty_factor: float = 10.0, augmented: bool = True,
                  penetration_tol_mm: float = 0.01, gap_tol_mm: float = 0.01,
-                 E_eff_MPa: float | None = None):
+                 E_eff_MPa: float | None = None, augmented_friction: bool = False,
+                 adaptive_penalty: float | None = None, stick_ratio: float = 1.0,
+                 stick_tol_mm: float | None = None):
         if mu < 0:
             raise InputError(f"friction coefficient mu = {mu} must be >= 0")
+        if not 0 < stick_ratio <= 1:
+            raise InputError(f"stick_ratio = {stick_ratio!r} must be within (0, 1]")
+        if adaptive_penalty is not None and not adaptive_penalty > 0:
+            raise InputError(f"adaptive_penalty = {adaptive_penalty!r} must be > 0 (or None)")
         mesh = problem.mesh
         self.problem, self.obstacle, self.facet_tags, self.tag = problem, obstacle, facet_tags, tag
         self.mu, self.gap_tol_mm, self.penetration_tol_mm = mu, gap_tol_mm, penetration_tol_mm
+        self.adaptive_penalty = adaptive_penalty
+        self.stick_tol_mm = penetration_tol_mm if stick_tol_mm is None else stick_tol_mm
         facets = np.asarray(facet_tags.find(tag), dtype=np.int32)
         self.h_mm = facet_size_mm(mesh, facets)
         if E_eff_MPa is None:
             E_eff_MPa = min(b.material.youngs_modulus_MPa for b in problem.bound.values())
         self.k_n_value = penalty_stiffness(E_eff_MPa, self.h_mm, penalty_factor)
         self.k_n = fem.Constant(mesh, PETSc.ScalarType(self.k_n_value))
+        self.stick_ratio = stick_ratio
+        self._k_t: fem.Constant | None = None
         self.translation = fem.Constant(mesh, PETSc.ScalarType((0.0, 0.0, 0.0)))
         self.translation_ref = fem.Constant(mesh, PETSc.ScalarType((0.0, 0.0, 0.0)))
         Q = fem.FunctionSpace(mesh, ("CG", 1))
@@ -88,11 +111,16 @@ class RigidContact:
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=facet_tags,
                          metadata=problem.ds_metadata)
         kw: dict[str, Any] = {}
+        self.lambda_t: fem.Function | None = None
         if mu > 0:
             Vu = fem.VectorFunctionSpace(mesh, ("CG", problem.disc.degree))
             self.u_ref = fem.Function(Vu, name="stick_anchor")
             kw = {"mu": fem.Constant(mesh, PETSc.ScalarType(mu)), "u_ref": self.u_ref,
                   "translation_ref": self.translation_ref}
+            if augmented and augmented_friction:
+                self.lambda_t = fem.Function(Vu, name="tangential_multiplier")
+                self._k_t = fem.Constant(mesh, PETSc.ScalarType(stick_ratio * self.k_n_value))
+                kw.update(lambda_t=self.lambda_t, k_t=self._k_t)
         else:
             self.u_ref = None
         self.terms = ufl_contact_terms(problem.u, problem.vu, obstacle, self.translation,
@@ -109,53 +137,111 @@ class RigidContact:
             self._p_expr = fem.Expression(self.terms.pressure, pts)
             self._slip = fem.Function(Vu)
             self._pnode = fem.Function(fem.FunctionSpace(mesh, ("CG", problem.disc.degree)))
+            if self.lambda_t is not None:
+                self._tT_expr = fem.Expression(self.terms.tangential_traction, pts)
+                self._tT = fem.Function(Vu)
+                self._t_dofs = fem.locate_dofs_topological(Vu, mesh.topology.dim - 1, facets)
         self._u_out: fem.Function | None = None
         self.last_penetration_mm = float("nan")
+        self.last_creep_mm = 0.0
         self.max_penalty_growth = 64.0
+
+    @property
+    def k_t(self) -> float:
+        """Stick spring (MPa/mm): k_n, or stick_ratio * k_n with augmented friction."""
+        return float(self.k_n.value if self._k_t is None else self._k_t.value)
+
+    def set_penalty(self, k_n: float) -> None:
+        """Set the normal penalty (MPa/mm) and with it the stick spring (Constants: no
+        recompilation)."""
+        self.k_n.value = float(k_n)
+        if self._k_t is not None:
+            self._k_t.value = self.stick_ratio * float(k_n)
+
+    def _tangential(self) -> np.ndarray:
+        """Nodal tangential traction at the contact dofs, (n, 3), of the current state."""
+        self._tT.interpolate(self._tT_expr)
+        return self._tT.x.array.reshape(-1, 3)
+
+    def stick_creep(self) -> float:
+        """Largest |t_T - lambda_t| / k_t over the contact nodes (mm, all ranks): how far the
+        augmented stick is from exact stick (0 without augmented friction)."""
+        if self.lambda_t is None:
+            return 0.0
+        d = self._t_dofs
+        diff = self._tangential()[d] - self.lambda_t.x.array.reshape(-1, 3)[d]
+        c = float(np.max(np.linalg.norm(diff, axis=1), initial=0.0)) / self.k_t
+        return self.problem.comm.allreduce(c, op=MPI.MAX)
+
+    def _set_lambda_t(self, tT: np.ndarray) -> None:
+        lam = np.zeros_like(self.lambda_t.x.array).reshape(-1, 3)
+        d = self._t_dofs
+        lam[d] = tT[d]
+        self.lambda_t.x.array[:] = lam.reshape(-1)
+        self.lambda_t.x.scatter_forward()
 
     def augment(self, final: bool = True) -> tuple[bool, float]:
         """Augmented-Lagrangian check after a converged Newton solve.
 
-        The penetration is measured first: if it is within the tolerance (or this is an
-        intermediate load step), nothing is changed and the solved state stays consistent with
-        its multipliers, so reported forces are the ones the solve balanced. Otherwise one Uzawa
-        update (lambda <- p) is made and the solver re-solves. Penalty growth (the standard
-        safeguard): when the penetration fell by less than half since the last update, k_n is
-        doubled (a Constant: no recompilation), up to ``max_penalty_growth`` x its start value."""
+        The penetration (and, with augmented friction, the stick creep) is measured first: if
+        it is within the tolerance (or this is an intermediate load step), nothing is changed
+        and the solved state stays consistent with its multipliers, so reported forces are the
+        ones the solve balanced. Otherwise one Uzawa update (lambda <- p, lambda_t <- t_T) is
+        made and the solver re-solves. Penalty growth: with ``adaptive_penalty`` see the class
+        docstring; otherwise (the standard safeguard) k_n is doubled when the penetration fell
+        by less than half since the last update, up to ``max_penalty_growth`` x its start
+        value."""
         if self.uzawa is None:
             return True, 0.0
         pen = self.uzawa.penetration()
-        if not final or pen <= self.penetration_tol_mm:
-            self.last_penetration_mm = pen
-            return True, pen
+        creep = self.stick_creep()
+        if not final or (pen <= self.penetration_tol_mm and creep <= self.stick_tol_mm):
+            self.last_penetration_mm, self.last_creep_mm = pen, creep
+            return True, max(pen, creep)
         prev = self.last_penetration_mm
+        tT = self._tangential().copy() if self.lambda_t is not None else None
         self.uzawa()
-        self.last_penetration_mm = pen
-        if math.isfinite(prev) and pen > 0.5 * prev:
-            k = float(self.k_n.value)
+        if tT is not None:
+            self._set_lambda_t(tT)
+        self.last_penetration_mm, self.last_creep_mm = pen, creep
+        k = float(self.k_n.value)
+        if self.adaptive_penalty is not None:
+            lam = self.lambda_n.x.array
+            p_peak = self.problem.comm.allreduce(float(np.max(lam, initial=0.0)), op=MPI.MAX)
+            self.set_penalty(min(max(k, self.adaptive_penalty * p_peak / self.h_mm), 2.0 * k))
+        elif math.isfinite(prev) and pen > 0.5 * prev:
             if k < self.max_penalty_growth * self.k_n_value:
-                self.k_n.value = 2.0 * k
-        return False, pen
+                self.set_penalty(2.0 * k)
+        return False, max(pen, creep)
 
     def reset_penalty(self) -> None:
         """Back to the automatic penalty (e.g. before a new loading path)."""
-        self.k_n.value = self.k_n_value
+        self.set_penalty(self.k_n_value)
         self.last_penetration_mm = float("nan")
 
     def on_step(self, t: float, result: Any) -> None:
-        """After an accepted load step: return-map the stick anchor (Coulomb friction with
-        memory). Nodes that stuck keep their anchor, so stick persists over load steps; nodes
-        that slipped move their anchor to twice the slip limit mu p / k_t; nodes out of
-        contact (p = 0) carry no anchor (margin 2: see
-        :func:`handfe.contact.friction_anchor_update`). The obstacle's anchor translation stays
-        0."""
+        """After an accepted load step: the Coulomb return mapping of the stick anchor
+        (friction with memory); the obstacle's anchor translation stays 0.
+
+        Penalty friction: nodes that stuck keep their anchor, so stick persists over load
+        steps; nodes that slipped move their anchor to twice the slip limit mu p / k_t; nodes
+        out of contact (p = 0) carry no anchor (margin 2: see
+        :func:`handfe.contact.friction_anchor_update`). Augmented friction: lambda_t <- t_T;
+        nodes that slip (|t_T| = mu p) or are out of contact move their anchor onto the
+        current position (the multiplier keeps their traction), stuck nodes keep it."""
         if self.u_ref is None:
             return
         self._slip.interpolate(self._slip_expr)
         self._pnode.interpolate(self._p_expr)
         s = self._slip.x.array.reshape(-1, 3)
-        shift = friction_anchor_update(s, self._pnode.x.array, self.mu, float(self.k_n.value),
-                                       margin=2.0)
+        p = np.maximum(self._pnode.x.array, 0.0)
+        if self.lambda_t is not None:
+            tT = self._tangential().copy()
+            self._set_lambda_t(tT)
+            slipping = np.linalg.norm(tT, axis=1) >= self.mu * p * (1.0 - 1e-9)
+            shift = np.where(slipping[:, None], s, 0.0)
+        else:
+            shift = friction_anchor_update(s, p, self.mu, self.k_t, margin=2.0)
         self.u_ref.x.array[:] += shift.reshape(-1)
         self.u_ref.x.scatter_forward()
 
