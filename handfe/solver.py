@@ -393,17 +393,14 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
           newton: NewtonOptions | None = None, stepping: LoadStepping | None = None,
           on_step: Callable[[float, SolveResult], None] | None = None,
           augment: Callable[[bool], tuple[bool, float]] | None = None,
-          progress: Callable[[str], None] | None = None,
-          guess: np.ndarray | None = None) -> SolveResult:
+          progress: Callable[[str], None] | None = None) -> SolveResult:
     """Drive the load factor t from 0 to 1.
 
     ``set_load(t)`` updates the load (fem.Constant values of Dirichlet data, tractions, obstacle
     positions) for factor t. ``augment(final)`` (optional) is called after each converged Newton
     solve, ``final`` True at t = 1; it updates multipliers and returns (done, violation); Newton is
     repeated until done (at most ``stepping.max_augment`` times). ``on_step(t, result)`` runs
-    after each accepted step. ``guess`` (optional, local array of ``problem.w``): a predicted
-    state at t = 1 (e.g. extrapolated from earlier solves); a step to t starts from
-    ``w0 + t (guess - w0)`` and is retried from ``w0`` if Newton fails from there.
+    after each accepted step.
     Raises :class:`SolverError` if a step fails after cutting to ``stepping.min_step``.
     """
     stepping = stepping or LoadStepping()
@@ -424,11 +421,7 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                 t_new = t + dt
                 set_load(t_new)
                 tried_pred = False
-                if guess is not None and prev2 is None:
-                    w.x.array[:] += t_new * (guess - w.x.array)  # w = w0 here
-                    w.x.scatter_forward()
-                    tried_pred = True
-                elif stepping.extrapolate and prev2 is not None and dt_prev:
+                if stepping.extrapolate and prev2 is not None and dt_prev:
                     # w = prev + dt/dt_prev (prev - prev2)
                     prev.copy(w.vector)
                     w.vector.axpy(dt / dt_prev, prev)
