@@ -27,7 +27,13 @@ TIGHTEN_AT = 0.85  # fraction of the target force where the loose march toleranc
 
 @dataclass(frozen=True)
 class FingertipConfig:
-    """Scene settings. ``material`` None = the calibrated default (:func:`default_material`)."""
+    """Scene settings. ``material`` None = the calibrated default (:func:`default_material`).
+
+    Contact solver: ``adaptive_penalty`` (k_n follows c * p_peak / h, see
+    :class:`~handfe.contact_problem.RigidContact`), ``augmented_friction`` with the stick spring
+    ``stick_ratio`` x k_n and stick creep <= ``stick_tol_mm``; during the force march the
+    multipliers are converged to ``march_tol_factor`` x the tolerances only (the full ones
+    from 85 % of the target force on)."""
 
     subject: str = "mean"
     angle_deg: float = 15.0
@@ -57,6 +63,14 @@ class FingertipConfig:
             raise InputError(f"plate angle {self.angle_deg!r} deg must be within 0..90")
         if self.friction < 0 or not math.isfinite(self.friction):
             raise InputError(f"friction coefficient {self.friction!r} must be >= 0")
+        if not 0.0 < self.stick_ratio <= 1.0:
+            raise InputError(f"stick_ratio {self.stick_ratio!r} must be within (0, 1]")
+        if not self.stick_tol_mm > 0.0:
+            raise InputError(f"stick_tol_mm {self.stick_tol_mm!r} must be > 0")
+        if not self.march_tol_factor >= 1.0:
+            raise InputError(f"march_tol_factor {self.march_tol_factor!r} must be >= 1")
+        if self.adaptive_penalty is not None and not self.adaptive_penalty > 0.0:
+            raise InputError(f"adaptive_penalty {self.adaptive_penalty!r} must be > 0 or None")
 
 
 CALIBRATION_FILE = Path(__file__).resolve().parent.parent / "reference" / \

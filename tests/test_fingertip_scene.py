@@ -64,6 +64,9 @@ def test_two_ranks_equal_one():
     (dict(angle_deg=95.0), "0..90"),
     (dict(angle_deg=-5.0), "0..90"),
     (dict(friction=-0.1), "friction"),
+    (dict(stick_ratio=0.0), "stick_ratio"),
+    (dict(march_tol_factor=0.5), "march_tol_factor"),
+    (dict(adaptive_penalty=-1.0), "adaptive_penalty"),
 ])
 def test_bad_config(kw, needle):
     with pytest.raises(InputError, match=needle):

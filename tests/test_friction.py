@@ -46,7 +46,7 @@ def _block(comm):
 class BlockScene:
     """Block on a plate, top clamped to a platen moved by ``platen`` (mm)."""
 
-    def __init__(self, mu: float, comm=MPI.COMM_WORLD):
+    def __init__(self, mu: float, comm=MPI.COMM_WORLD, augmented_friction: bool = False):
         from handfe.contact import HalfSpace
         from handfe.contact_problem import RigidContact
         from handfe.materials import NeoHookean
@@ -61,7 +61,8 @@ class BlockScene:
         self.platen = self.prob.fix(self.top)
         plate = HalfSpace(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
         self.contact = RigidContact(self.prob, plate, self.ft, 1, mu=mu,
-                                    penetration_tol_mm=PEN_TOL)
+                                    penetration_tol_mm=PEN_TOL,
+                                    augmented_friction=augmented_friction, stick_ratio=0.3)
         x = self.mesh.geometry.x
         self._bottom_nodes = np.flatnonzero(np.isclose(x[:, 2], 0.0))
 
@@ -98,8 +99,8 @@ class BlockScene:
         return s / n
 
 
-def _pressed(mu: float) -> BlockScene:
-    sc = BlockScene(mu)
+def _pressed(mu: float, augmented_friction: bool = False) -> BlockScene:
+    sc = BlockScene(mu, augmented_friction=augmented_friction)
     sc.move((0.0, 0.0, -DELTA), initial=0.5)
     return sc
 
@@ -156,6 +157,36 @@ def test_sliding_force_equals_mu_N():
     sc = _pressed(mu)
     sc.move((0.6, 0.0, -DELTA), initial=0.125)
     N, F = sc.forces()
+    assert np.linalg.norm(F) == pytest.approx(mu * N, rel=0.02)
+
+
+def test_augmented_friction_sticks_without_creep():
+    """Augmented friction (tangential Uzawa multipliers, stick spring 0.3 k_n): below mu N the
+    face sticks to within the stick tolerance (PEN_TOL = 2e-4 mm), not by a creep |t_T| / k_t,
+    and the friction force is the elastic shear of the block, G A / H * d, within 25 %."""
+    mu = 0.74
+    sc = _pressed(mu, augmented_friction=True)
+    d = 0.08
+    sc.move((d, 0.0, -DELTA))
+    N, Ft = sc.forces()
+    ft = float(np.linalg.norm(Ft))
+    assert ft < 0.6 * mu * N and Ft[0] < 0.0
+    assert abs(sc.slip_mm()) < 2 * PEN_TOL
+    assert sc.contact.last_creep_mm <= PEN_TOL
+    G = E_MPA / (2 * (1 + NU))
+    assert ft == pytest.approx(G * L_MM**2 / H_MM * d, rel=0.25)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured 0.886 mu N (1.593 N for mu N = 1.798 N), the same shortfall as the penalty law: "
+    "the nodal multiplier does not fix the quadrature-point stick/slip mix at the patch"))
+def test_augmented_friction_slides_at_mu_N():
+    """Augmented friction in steady sliding should give a friction force of mu N."""
+    mu = 0.74
+    sc = _pressed(mu, augmented_friction=True)
+    sc.move((0.6, 0.0, -DELTA), initial=0.125)
+    N, F = sc.forces()
+    assert np.linalg.norm(F) <= mu * N * (1 + 1e-6)
     assert np.linalg.norm(F) == pytest.approx(mu * N, rel=0.02)
 
 
