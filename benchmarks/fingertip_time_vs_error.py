@@ -156,5 +156,6 @@ def report(rows: list[dict], out: Path, title: str) -> None:
     fig.tight_layout()
     fig.savefig(out / "fingertip_time_vs_error.png")
 
+
 if __name__ == "__main__":
     main()

@@ -163,13 +163,15 @@ class RigidContact:
         self._tT.interpolate(self._tT_expr)
         return self._tT.x.array.reshape(-1, 3)
 
-    def stick_creep(self) -> float:
+    def stick_creep(self, tT: np.ndarray | None = None) -> float:
         """Largest |t_T - lambda_t| / k_t over the contact nodes (mm, all ranks): how far the
-        augmented stick is from exact stick (0 without augmented friction)."""
+        augmented stick is from exact stick (0 without augmented friction). ``tT``: the nodal
+        tangential traction of the current state if already interpolated."""
         if self.lambda_t is None:
             return 0.0
         d = self._t_dofs
-        diff = self._tangential()[d] - self.lambda_t.x.array.reshape(-1, 3)[d]
+        tT = self._tangential() if tT is None else tT
+        diff = tT[d] - self.lambda_t.x.array.reshape(-1, 3)[d]
         c = float(np.max(np.linalg.norm(diff, axis=1), initial=0.0)) / self.k_t
         return self.problem.comm.allreduce(c, op=MPI.MAX)
 
@@ -194,12 +196,13 @@ class RigidContact:
         if self.uzawa is None:
             return True, 0.0
         pen = self.uzawa.penetration()
-        creep = self.stick_creep()
+        # one interpolation of t_T serves the creep check and the multiplier update
+        tT = self._tangential().copy() if self.lambda_t is not None else None
+        creep = self.stick_creep(tT)
         if not final or (pen <= self.penetration_tol_mm and creep <= self.stick_tol_mm):
             self.last_penetration_mm, self.last_creep_mm = pen, creep
             return True, max(pen, creep)
         prev = self.last_penetration_mm
-        tT = self._tangential().copy() if self.lambda_t is not None else None
         self.uzawa()
         if tT is not None:
             self._set_lambda_t(tT)
