@@ -22,6 +22,7 @@ from handfe.grasp.mechanics import (
     pre_close,
     released_joints,
 )
+from handfe.grasp.scene import secant_closing_increment
 from handfe.kinematics import Pose
 from handfe.paths import REPO_ROOT
 
@@ -53,6 +54,33 @@ def test_bad_values(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\ntorque_rtol = -1.0\n')
     with pytest.raises(ConfigError, match="torque_rtol"):
         load_workflow(p)
+
+
+def test_contact_scheme_options_validated(tmp_path):
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nnewton_linesearch = "cp"\n')
+    with pytest.raises(ConfigError, match="newton_linesearch"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nstick_ratio = 0.0\n')
+    with pytest.raises(ConfigError, match="stick_ratio"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\ndigit_force_rtol = 1.5\n')
+    with pytest.raises(ConfigError, match="digit_force_rtol"):
+        load_workflow(p)
+
+
+def test_secant_closing_increment():
+    # no history, no force yet, or a falling force: the plain step
+    assert secant_closing_increment(None, 0.0, 0.0, 5.0, 0.2, 0.5) == 0.5
+    assert secant_closing_increment((0.0, 0.0), 0.5, 0.1, 5.0, 0.2, 0.5) == 0.5
+    assert secant_closing_increment((0.0, 1.0), 0.5, 0.9, 5.0, 0.2, 0.5) == 0.5
+    # exponential force F = 0.1 exp(4 theta): the secant is exact, aimed at 0.9 x 5 N
+    f = lambda t: 0.01 * np.exp(4.0 * t)  # noqa: E731
+    inc = secant_closing_increment((0.5, f(0.5)), 1.0, f(1.0), 5.0, 0.2, 1.0)
+    assert 0.0 < inc < 1.0 and f(1.0 + inc) == pytest.approx(4.5, rel=1e-12)
+    # far from the target: capped at the step; at the target: the smallest step
+    assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5) == 0.5
+    assert secant_closing_increment((0.5, f(0.5)), 1.0, 4.6, 5.0, 0.2, 0.5) == \
+        pytest.approx(0.01)
 
 
 def test_missing_subject_and_grasp(tmp_path):

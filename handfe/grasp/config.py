@@ -90,6 +90,28 @@ class SolverSpec:
     penetration_tol_mm: float = field(default=0.01, metadata=bounds(1e-5, 1.0))
     gap_tol_mm: float = field(default=0.01, metadata=bounds(0.0, 1.0))
     max_augment: int = field(default=12, metadata=bounds(0, 100))
+    # contact scheme (docs/contact.md): adaptive_penalty c > 0 lets k_n follow c x p_peak / h
+    # after each Uzawa update (0 = off); augmented_friction puts the stick traction in
+    # tangential multipliers with a stick spring stick_ratio x k_n
+    adaptive_penalty: float = field(default=0.0, metadata=bounds(0.0, 1e4))
+    augmented_friction: bool = False
+    stick_ratio: float = field(default=1.0, metadata=bounds(0.01, 1.0))
+    stick_tol_mm: float = field(default=0.02, metadata=bounds(1e-5, 1.0))
+    # Newton line search tried first ("bt" backtracking or "basic" full steps); the other is
+    # the fallback before a step is cut
+    # closing steps: Uzawa updates after each step until its penetration is <=
+    # step_penetration_mm (the multipliers carry the pads' load; k_n stays soft) instead of
+    # only raising the penalty
+    step_uzawa: bool = False
+    # angles mode: closing_secant sizes each digit's next step from its last two (angle, force)
+    # pairs (log-force secant aimed just under digit_force_N; at most closing_step_deg); a
+    # digit stops once its force is >= (1 - digit_force_rtol) x digit_force_N
+    closing_secant: bool = False
+    digit_force_rtol: float = field(default=0.0, metadata=bounds(0.0, 0.9))
+    # contact facet quadrature: "vertex" collocates the contact force at the nodes, where the
+    # Uzawa update enforces the gap (P1 elements only; docs/contact.md); "gauss" = 2nd order
+    contact_quadrature: str = field(default="gauss", metadata=choices("gauss", "vertex"))
+    newton_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
     nu: float = field(default=0.49, metadata=bounds(0.3, 0.4999))
 
 

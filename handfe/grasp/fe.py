@@ -162,6 +162,7 @@ class TwoFormNewton:
         # backtracking by default; "basic" (full Newton steps) as the fallback where the
         # backtracking stalls at a kink of the contact law (semi-smooth residual)
         self._snes = {ls: self._make_snes(ls, rtol, atol, max_it) for ls in ("bt", "basic")}
+        self.line_search = "bt"
         self.snes = self._snes["bt"]
         self.iterations = 0
 
@@ -208,7 +209,10 @@ class TwoFormNewton:
         fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
 
-    def solve(self, line_search: str = "bt") -> tuple[bool, int, str]:
+    def solve(self, line_search: str | None = None) -> tuple[bool, int, str]:
+        """Newton from the current state with ``line_search`` ("bt" or "basic"; default
+        :attr:`line_search`). Returns (converged, iterations, SNES reason)."""
+        line_search = line_search or self.line_search
         self.history.clear()
         p = self.problem
         p.w.vector.copy(self.x)

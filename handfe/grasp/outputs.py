@@ -5,6 +5,13 @@ flat triangle through its deformed vertices; its contact area is the part where 
 interpolated from the vertices is <= gap_tol (as :func:`handfe.contact.contact_metrics`), the
 pressure and tangential traction are the vertex values (P1) integrated with the vertex rule over
 the deformed facet. All sums are over owned facets and reduced over ranks.
+
+Forces: with the consistent nodal contact forces (the contact residual at the skin nodes,
+``node_force``), each node's force is shared equally by the outer-skin facets around it, so the
+regions add up exactly to the force on the object that the equilibrium check uses; the normal
+part is along the object's normal at the node, and the mean pressure is the normal load over
+the contact area. The vertex-rule integral of the interpolated pressure is the fallback: on a
+coarse pad (a contact patch of a few facets) it can differ from the nodal forces several times.
 """
 
 from __future__ import annotations
@@ -26,9 +33,34 @@ def region_of(code: int) -> tuple[str, str]:
     return REGIONS[r - 1], (PHALANGES[ph - 1] if ph else "")
 
 
-def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float):
+def _shared_count(mesh, fun, nodes: np.ndarray) -> np.ndarray:
+    """Per geometry node: the number of ``nodes`` facets (over all ranks) that touch it.
+    ``fun``: any scalar-or-vector P1 Function (its space's dofmap is used)."""
+    from dolfinx import fem
+    from dolfinx.cpp.la import ScatterMode
+
+    V = fem.FunctionSpace(mesh, ("CG", 1))
+    c = fem.Function(V)
+    geo = mesh.geometry.dofmap.array.reshape(-1, len(mesh.geometry.dofmap.links(0)))
+    dofs = V.dofmap.list.array.reshape(geo.shape[0], -1)
+    g2d = np.full(mesh.geometry.x.shape[0], -1, dtype=np.int64)
+    g2d[geo[:, :dofs.shape[1]].reshape(-1)] = dofs.reshape(-1)
+    cnt = np.zeros(mesh.geometry.x.shape[0])
+    np.add.at(cnt, nodes.reshape(-1), 1.0)
+    used = g2d >= 0
+    c.x.array[g2d[used]] = cnt[used]
+    c.x.scatter_reverse(ScatterMode.add)
+    c.x.scatter_forward()
+    out = np.zeros(mesh.geometry.x.shape[0])
+    out[used] = c.x.array[g2d[used]]
+    return out
+
+
+def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float, node_force=None):
     """Owned outer-skin facets: codes, deformed vertices (nf, 3, 3), gap at vertices, vertex
-    pressure (MPa), vertex tangential traction (nf, 3, 3), clipped contact area, full area."""
+    pressure (MPa), vertex tangential traction (nf, 3, 3), clipped contact area, full area;
+    with ``node_force`` (P1 vector Function, N: the force the skin exerts on the object at each
+    node) also each facet vertex's share of it ``f`` (nf, 3, 3)."""
     from dolfinx import cpp
 
     from handfe.contact import _clip_patch, _node_values
@@ -53,8 +85,13 @@ def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float):
         np.zeros(0), None, None, None)
     full = 0.5 * np.linalg.norm(np.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]), axis=1) \
         if len(facets) else np.zeros(0)
-    return {"codes": codes, "xf": xf, "g": g, "n": n.reshape(-1, 3, 3), "p": pv, "t": tv,
-            "area_c": area_c, "area": full}
+    fd = {"codes": codes, "xf": xf, "g": g, "n": n.reshape(-1, 3, 3), "p": pv, "t": tv,
+          "area_c": area_c, "area": full}
+    if node_force is not None:
+        cnt = _shared_count(mesh, node_force, nodes)
+        fn = _node_values(node_force, mesh)
+        fd["f"] = fn[nodes] / np.maximum(cnt[nodes], 1.0)[..., None]
+    return fd
 
 
 def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
@@ -77,17 +114,34 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
     area_c = np.maximum(fd["area_c"], frac_p * fd["area"]) if len(codes) else np.zeros(0)
     nm = fd["n"].mean(axis=1) if len(codes) else np.zeros((0, 3))
     tm = fd["t"].mean(axis=1) if len(codes) else np.zeros((0, 3))
+    nodal = "f" in fd
+    if nodal and len(codes):
+        f = fd["f"]  # force on the object, shared per facet vertex
+        fn_s = -np.einsum("fvi,fvi->fv", f, fd["n"])  # pressing force along -n (>= 0)
+        fvec_f = f.sum(axis=1)
+        fnorm_f = (-fn_s[..., None] * fd["n"]).sum(axis=1)
+        fnsum_f = fn_s.sum(axis=1)
     out = {}
     for k, m in keys.items():
         area = comm.allreduce(float(area_c[m].sum()), op=MPI.SUM)
-        psum = comm.allreduce(float((pm[m] * fd["area"][m]).sum()), op=MPI.SUM)
-        fvec = comm.allreduce((pm[m, None] * nm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
-        tvec = comm.allreduce((tm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
+        if nodal:
+            z3 = np.zeros(3)
+            psum = comm.allreduce(float(fnsum_f[m].sum()) if len(codes) else 0.0, op=MPI.SUM)
+            fvec = comm.allreduce(fvec_f[m].sum(axis=0) if len(codes) else z3, op=MPI.SUM)
+            fnv = comm.allreduce(fnorm_f[m].sum(axis=0) if len(codes) else z3, op=MPI.SUM)
+            tvec = fvec - fnv
+            nforce = float(np.linalg.norm(fnv))
+        else:
+            psum = comm.allreduce(float((pm[m] * fd["area"][m]).sum()), op=MPI.SUM)
+            fvec = comm.allreduce((pm[m, None] * nm[m] * fd["area"][m, None]).sum(axis=0),
+                                  op=MPI.SUM)
+            tvec = comm.allreduce((tm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
+            nforce = float(np.linalg.norm(fvec))
         peak = comm.allreduce(float(fd["p"][m].max(initial=0.0)), op=MPI.MAX)
         out[k] = {"contact_area_mm2": area,
                   "mean_pressure_kPa": 1e3 * psum / area if area > 0 else 0.0,
                   "peak_pressure_kPa": 1e3 * peak,
-                  "normal_force_N": float(np.linalg.norm(fvec)),
+                  "normal_force_N": nforce,
                   "tangential_force_N": float(np.linalg.norm(tvec)),
                   "force_vector_N": [float(x) for x in fvec]}
     return out

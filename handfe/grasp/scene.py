@@ -403,6 +403,25 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         raise
 
 
+def secant_closing_increment(last: tuple[float, float] | None, closed_deg: float,
+                             force_N: float, target_N: float, rtol: float,
+                             max_step_deg: float) -> float:
+    """Next closing angle of a digit (deg): the log-force secant through its last two
+    (closed angle, force) pairs ``last`` and (``closed_deg``, ``force_N``), aimed at
+    (1 - rtol / 2) x ``target_N``, within [0.02, 1] x ``max_step_deg``; ``max_step_deg``
+    without a usable secant (first step, no force yet, force not rising). A pad's force grows
+    faster than exponentially with the angle once it presses (0.5 deg took the pinch's middle
+    finger from 3 to 40 N), so the secant undershoots the slope and steps stay short."""
+    if last is None:
+        return max_step_deg
+    c0, f0 = last
+    if not (f0 > 1e-3 * target_N and force_N > 1.01 * f0 and closed_deg > c0):
+        return max_step_deg
+    g = math.log(force_N / f0) / (closed_deg - c0)
+    aim = (1.0 - 0.5 * rtol) * target_N
+    return float(np.clip(math.log(aim / force_N) / g, 0.02 * max_step_deg, max_step_deg))
+
+
 class GraspFE:
     """The FE model of one grasp and its two loading paths."""
 
@@ -429,12 +448,18 @@ class GraspFE:
         self.contact = RigidContact(self.problem, obstacle, skin_tags, 1, mu=grasp.friction,
                                     penalty_factor=s.penalty_factor,
                                     penetration_tol_mm=s.penetration_tol_mm,
-                                    gap_tol_mm=s.gap_tol_mm, E_eff_MPa=E_eff)
+                                    gap_tol_mm=s.gap_tol_mm, E_eff_MPa=E_eff,
+                                    adaptive_penalty=s.adaptive_penalty or None,
+                                    augmented_friction=s.augmented_friction,
+                                    stick_ratio=s.stick_ratio, stick_tol_mm=s.stick_tol_mm,
+                                    quadrature=s.contact_quadrature)
         self.contact.translation.value = np.asarray(shift, dtype=float)
         self.contact.max_penalty_growth = 4.0  # stronger growth ruins Newton on the hand
         # contact Newton often converges linearly for a while (active set settling): 40
         # iterations before a cut wastes less than restarting a halved step
         self.solver = TwoFormNewton(self.problem, max_it=40)
+        self.solver.line_search = s.newton_linesearch
+        self._fallback_ls = "basic" if s.newton_linesearch == "bt" else "bt"
         self.joints = released_joints(grasp.digits)
         self.kin = Kinematics(subject, pose, self.joints)
         m = measured or pose
@@ -485,16 +510,19 @@ class GraspFE:
                 if not (np.isfinite(r_sec) and r_sec < r_ext):  # NaN: inverted cells
                     self._set_state(ext)
             ok, its, reason = self.solver.solve()
-            if not ok and np.isfinite(self.solver.history[-1] if self.solver.history else 0.0):
-                # backtracking stalled (a kink of the contact law): full Newton steps from the
-                # same start before cutting the step
+            if not ok and (self._fallback_ls == "bt" or np.isfinite(
+                    self.solver.history[-1] if self.solver.history else 0.0)):
+                # the first line search failed: backtracking stalls at a kink of the contact
+                # law, full steps may invert cells (NaN); the other one from the same start
+                # before cutting the step
                 hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
                 self._set_state(w0)
                 self.bc.predict(bc_conv)
                 its0 = its
-                ok, its, reason = self.solver.solve("basic")
-                self.say(f"    {label}: backtracking failed ({hist}); full Newton steps "
-                         f"{'converged' if ok else 'failed too'} ({its} iterations)")
+                ok, its, reason = self.solver.solve(self._fallback_ls)
+                self.say(f"    {label}: {self.solver.line_search} line search failed ({hist}); "
+                         f"{self._fallback_ls} {'converged' if ok else 'failed too'} ({its} "
+                         f"iterations)")
                 its += its0
             if ok:
                 self._dw = self.problem.w.x.array - w0
@@ -561,10 +589,10 @@ class GraspFE:
             if pen <= 1.5 * s.step_penetration_mm or k >= k_max:
                 return
             k_new = min(k * min(4.0, 2.0 * pen / s.step_penetration_mm), k_max)
-            c.k_n.value = k_new
+            c.set_penalty(k_new)
 
             def undo(k: float = k) -> None:
-                c.k_n.value = k
+                c.set_penalty(k)
 
             if not self._resolve(f"penalty x{k_new / c.k_n_value:.3g} (penetration was "
                                  f"{pen:.3f} mm)", undo):
@@ -587,25 +615,44 @@ class GraspFE:
             undo()
         return ok
 
-    def augment(self) -> None:
-        """Uzawa updates until the penetration is <= the tolerance. A re-solve that fails
-        restores the last converged state and multipliers and stops (the penetration reached
-        is reported, never hidden)."""
+    def augment(self, tol_mm: float | None = None) -> None:
+        """Uzawa updates until the penetration (and stick creep) is <= the tolerance
+        (``tol_mm``, default the contact's). A re-solve that fails restores the last converged
+        state and multipliers and stops (the penetration reached is reported, never hidden)."""
         c = self.contact
+        if tol_mm is not None:
+            tols = c.penetration_tol_mm, c.stick_tol_mm
+            c.penetration_tol_mm = c.stick_tol_mm = tol_mm
+            try:
+                self.augment()
+            finally:
+                c.penetration_tol_mm, c.stick_tol_mm = tols
+            return
+        prev = float("nan")
         for _ in range(self.wf.solver.max_augment):
             lam = c.lambda_n.x.array.copy()
+            lam_t = None if c.lambda_t is None else c.lambda_t.x.array.copy()
             k = float(c.k_n.value)
             done, pen = c.augment(True)  # changes the multipliers (and k_n), not the state
             if done:
                 return
             self.augmentations += 1
+            if c.adaptive_penalty is not None and math.isfinite(prev) and pen > 0.5 * prev:
+                # the pressure-following penalty is too soft for a stiffened pad (the
+                # penetration falls by < 2x per update): at least double it
+                c.set_penalty(max(float(c.k_n.value), 2.0 * k))
+            prev = pen
 
-            def undo(lam: np.ndarray = lam, k: float = k) -> None:
+            def undo(lam: np.ndarray = lam, lam_t: np.ndarray | None = lam_t,
+                     k: float = k) -> None:
                 c.lambda_n.x.array[:] = lam
-                c.k_n.value = k
+                if lam_t is not None:
+                    c.lambda_t.x.array[:] = lam_t
+                c.set_penalty(k)
 
+            creep = f", stick creep {c.last_creep_mm:.4f} mm" if c.lambda_t is not None else ""
             if not self._resolve(f"Uzawa update {self.augmentations} (penetration was "
-                                 f"{pen:.4f} mm)", undo):
+                                 f"{c.last_penetration_mm:.4f} mm{creep})", undo):
                 return
 
     def _joint_geometry(self, skel):
@@ -665,6 +712,38 @@ class GraspFE:
         tot = np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
         return {d: float(np.linalg.norm(v)) for d, v in zip(self.grasp.digits, tot, strict=True)}
 
+    def _snapshot(self) -> dict[str, Any]:
+        """Everything a closing step changes (state, bone data, contact multipliers, penalty,
+        stick anchors, predictor), for :meth:`_restore`."""
+        c = self.contact
+        snap = {"theta": self.theta.copy(), "motions": self.motions,
+                "skel": getattr(self, "skel", None), "w": self.problem.w.x.array.copy(),
+                "ubc": self.bc.ubc.x.array.copy(), "k": float(c.k_n.value),
+                "dw": self._dw, "dbc": self._dbc}
+        for name in ("lambda_n", "lambda_t", "u_ref"):
+            f = getattr(c, name)
+            snap[name] = None if f is None else f.x.array.copy()
+        return snap
+
+    def _restore(self, snap: dict[str, Any]) -> None:
+        c = self.contact
+        self.theta, self.motions, self.skel = snap["theta"].copy(), snap["motions"], snap["skel"]
+        self._set_state(snap["w"])
+        self.bc.ubc.x.array[:] = snap["ubc"]
+        c.set_penalty(snap["k"])
+        self._dw, self._dbc = snap["dw"], snap["dbc"]
+        for name in ("lambda_n", "lambda_t", "u_ref"):
+            if snap[name] is not None:
+                getattr(c, name).x.array[:] = snap[name]
+
+    def _closing_increment(self, last: tuple[float, float] | None, closed: float,
+                           force: float) -> float:
+        s = self.wf.solver
+        if not s.closing_secant:
+            return s.closing_step_deg
+        return secant_closing_increment(last, closed, force, s.digit_force_N,
+                                        s.digit_force_rtol, s.closing_step_deg)
+
     def solve_angles(self) -> None:
         """Each digit whose contact force is below ``digit_force_N`` closes its released joints
         by ``closing_step_deg`` per load step (the others hold), until every digit carries its
@@ -675,9 +754,11 @@ class GraspFE:
         closed = dict.fromkeys(self.grasp.digits, 0.0)
         digit_of = np.array([j.digit for j in self.joints])
         k = 0
+        last: dict[str, tuple[float, float]] = {}  # digit -> (closed, force) before its last step
+        f_stop = (1.0 - s.digit_force_rtol) * s.digit_force_N
         while True:
             forces = self.digit_forces()
-            active = [d for d in self.grasp.digits if forces[d] < s.digit_force_N
+            active = [d for d in self.grasp.digits if forces[d] < f_stop
                       and closed[d] < s.closing_deg - 1e-9 and d not in self.stalled
                       and np.any(theta[digit_of == d] < self.kin.hi[digit_of == d] - 1e-9)]
             if k:
@@ -688,22 +769,48 @@ class GraspFE:
             k += 1
             inc = {}
             for d in active:
-                inc[d] = min(s.closing_step_deg, s.closing_deg - closed[d])
-                theta[digit_of == d] += inc[d]
-                closed[d] += inc[d]
-            theta = self.kin.clamp(theta)
-            try:
-                self._go_to(theta, label=f"closing {k} ({', '.join(active)})")
-            except SolverError as exc:
-                # keep the last converged state: these digits hold where they are, the others
-                # go on; the summary says which digits stalled and why (never hidden)
-                self.stalled.update({d: str(exc) for d in active})
-                self.say(f"    {', '.join(active)} stop closing here: {exc}")
+                inc[d] = min(self._closing_increment(last.get(d), closed[d], forces[d]),
+                             s.closing_deg - closed[d])
+                last[d] = (closed[d], forces[d])
+            snap = self._snapshot() if s.closing_secant else None
+            for retry in range(4):
                 theta = self.theta.copy()
                 for d in active:
-                    closed[d] -= inc[d]
-                continue
-            self._stiffen()
+                    theta[digit_of == d] += inc[d]
+                theta = self.kin.clamp(theta)
+                try:
+                    self._go_to(theta, label=f"closing {k} ({', '.join(active)})")
+                except SolverError as exc:
+                    # keep the last converged state: these digits hold where they are, the
+                    # others go on; the summary says which digits stalled and why
+                    self.stalled.update({d: str(exc) for d in active})
+                    self.say(f"    {', '.join(active)} stop closing here: {exc}")
+                    inc = {}
+                    break
+                if s.step_uzawa:
+                    self.augment(s.step_penetration_mm)
+                else:
+                    self._stiffen()
+                if snap is None or retry == 3:
+                    break
+                # a digit far past its force (the pad stiffens abruptly once it presses): back
+                # to the step's start and a log-force regula falsi for the overshooting digits
+                f_new = self.digit_forces()
+                over = [d for d in active if f_new[d] > (1.0 + s.digit_force_rtol)
+                        * s.digit_force_N and forces[d] < s.digit_force_N]
+                if not over:
+                    break
+                self.say("    " + ", ".join(f"{d} {f_new[d]:.2f} N" for d in over)
+                         + f" overshoots {s.digit_force_N:g} N: step redone smaller")
+                self._restore(snap)
+                aim = (1.0 - 0.5 * s.digit_force_rtol) * s.digit_force_N
+                for d in over:
+                    f0 = max(forces[d], 1e-3 * s.digit_force_N)
+                    frac = math.log(aim / f0) / math.log(f_new[d] / f0)
+                    inc[d] *= float(np.clip(frac, 0.05, 0.7))
+            for d in inc:
+                closed[d] += inc[d]
+            theta = self.theta.copy()
         self.closing_deg = closed
         self.digit_force_N = forces
         self.augment()
@@ -788,13 +895,33 @@ class GraspFE:
             if self.contact.terms.tangential_traction is not None else None
         return u1, p1, t1
 
+    def _contact_node_force(self):
+        """The consistent nodal contact forces (N) as a P1 vector Function: the contact
+        residual at each skin node = the force the skin exerts there on the object (the sum is
+        the object force of the equilibrium check). None for elements with mid-side nodes
+        (the metrics then integrate the interpolated pressure)."""
+        from dolfinx import fem
+        from dolfinx.fem import petsc as fem_petsc
+        from petsc4py import PETSc
+
+        if self.problem.disc.degree != 1:
+            return None
+        Rc = fem_petsc.assemble_vector(self.solver.L[1])
+        Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        Rc.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+        w = fem.Function(self.problem.W)
+        with Rc.localForm() as loc:
+            w.x.array[:] = loc.array
+        Rc.destroy()
+        return w.sub(0).collapse()
+
     def metrics(self):
         from handfe.grasp.outputs import facet_data, region_metrics
 
         u1, p1, t1 = self._fields()
         self._out = (u1, p1)
         fd = facet_data(self.model, u1, p1, t1, self.obstacle, self.contact.translation.value,
-                        self.wf.solver.gap_tol_mm)
+                        self.wf.solver.gap_tol_mm, node_force=self._contact_node_force())
         return region_metrics(fd, self.problem.comm), fd
 
     def report(self) -> dict[str, Any]:

@@ -1,0 +1,58 @@
+"""Per-region contact forces of the grasp outputs from consistent nodal forces
+(handfe.grasp.outputs): every node's force is shared by the outer-skin facets around it, so the
+regions partition the total exactly, also across MPI ranks (run under ``make test-mpi`` too).
+
+Unit cube, 4x4x4 tets; its top face z = 1 is "outer skin", split into an index-pad region
+(x < 1/2) and a middle-pad region; a rigid plate above it (obstacle normal -z). Each top node
+pushes the plate with (tx, 0, 1) N."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from handfe.anatomy.meshing import SKIN_OUTER_GMSH
+from handfe.contact import HalfSpace
+from handfe.grasp.outputs import facet_data, region_metrics
+
+N = 4
+INDEX_DISTAL = SKIN_OUTER_GMSH + 10 * 2 + 3
+MIDDLE_DISTAL = SKIN_OUTER_GMSH + 10 * 3 + 3
+TX = 0.3
+
+
+@pytest.mark.mpi
+def test_nodal_forces_partition_into_regions():
+    from dolfinx import fem, mesh
+
+    comm = MPI.COMM_WORLD
+    msh = mesh.create_unit_cube(comm, N, N, N)
+    top = np.sort(mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 1.0)))
+    mid = mesh.compute_midpoints(msh, 2, top)
+    codes = np.where(mid[:, 0] < 0.5, INDEX_DISTAL, MIDDLE_DISTAL).astype(np.int32)
+    ft = mesh.meshtags(msh, 2, top.astype(np.int32), codes)
+    model = SimpleNamespace(mesh=msh, facet_tags=ft,
+                            groups={"skin_outer": [INDEX_DISTAL, MIDDLE_DISTAL]})
+    V = fem.VectorFunctionSpace(msh, ("CG", 1))
+    u1 = fem.Function(V)
+    f1 = fem.Function(V)
+    f1.interpolate(lambda x: np.vstack([np.full(x.shape[1], TX), 0 * x[0],
+                                        np.isclose(x[2], 1.0).astype(float)]))
+    f1.x.array[:] *= np.repeat(np.isclose(V.tabulate_dof_coordinates()[:, 2], 1.0), 3)
+    p1 = fem.Function(fem.FunctionSpace(msh, ("CG", 1)))
+    plate = HalfSpace(point=(0.0, 0.0, 1.0), normal=(0.0, 0.0, -1.0))
+    fd = facet_data(model, u1, p1, None, plate, np.zeros(3), 0.01, node_force=f1)
+    r = region_metrics(fd, comm)
+    n_top = (N + 1) ** 2  # top nodes, each pushing with (TX, 0, 1) N
+    total = np.array(r["index"]["force_vector_N"]) + np.array(r["middle"]["force_vector_N"])
+    assert total == pytest.approx([TX * n_top, 0.0, n_top], rel=1e-12, abs=1e-12)
+    # the nodes on x = 1/2 are shared by both regions: 2 of their facets (of 6 or 3) on each
+    # side; the partition is exact and the split is the normal/tangential one of the plate
+    for reg in ("index", "middle"):
+        fz = r[reg]["force_vector_N"][2]
+        assert r[reg]["normal_force_N"] == pytest.approx(fz, rel=1e-12)
+        assert r[reg]["tangential_force_N"] == pytest.approx(TX * fz, rel=1e-12)
+        assert r[f"{reg}_distal"]["normal_force_N"] == pytest.approx(fz, rel=1e-12)
+    assert r["index"]["force_vector_N"][2] == pytest.approx(n_top / 2, rel=1e-12)
+    assert r["ring"]["normal_force_N"] == 0.0
