@@ -733,7 +733,8 @@ def _clip_patch(x: np.ndarray, phi: np.ndarray, axes: np.ndarray):
 def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
                     gap_tol_mm: float = 0.01, pressure=None, tangential_traction=None,
                     axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), comm=None,
-                    quadrature_degree: int = 4) -> ContactMetrics:
+                    quadrature_degree: int = 4, metadata: dict | None = None
+                    ) -> ContactMetrics:
     """Contact outputs of the surface region ``facet_tags == tag`` for the displacement ``u``
     (vector Function, mm) against ``obstacle`` translated by ``translation_value`` (3 floats).
 
@@ -744,7 +745,8 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
       and ``axes[1]`` (normalised), max_penetration_mm = max(0, -gap) at the region's vertices.
     * pressure (MPa; UFL expression or Function, e.g. ``ContactTerms.pressure``): force vector
       ``int p n da`` over the region (deformed area, n = obstacle normal, quadrature degree
-      ``quadrature_degree``), normal_force_N = its magnitude, mean pressure = ``int p da`` /
+      ``quadrature_degree``, or the rule ``metadata``), normal_force_N = its magnitude, mean
+      pressure = ``int p da`` /
       contact area, peak = max of p at the region's vertices (interpolated to P1).
     * tangential_traction (MPa vector expression, e.g. ``ContactTerms.tangential_traction``):
       tangential_force_N = |int t_T da|; 0 if None and a pressure is given.
@@ -800,7 +802,7 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
                                      + c[5] * tangential_traction[1]
                                      + c[6] * tangential_traction[2])
         dsm = ufl.Measure("ds", domain=mesh, subdomain_data=facet_tags,
-                          metadata={"quadrature_degree": int(quadrature_degree)})
+                          metadata=metadata or {"quadrature_degree": int(quadrature_degree)})
         form = fem.form(integrand * da * dsm(int(tag)))
         vals = []
         for i in range(7 if tangential_traction is not None else 4):

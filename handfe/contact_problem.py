@@ -192,7 +192,12 @@ class RigidContact:
         d = self._t_dofs
         tT = self._tangential() if tT is None else tT
         diff = tT[d] - self.lambda_t.x.array.reshape(-1, 3)[d]
-        c = float(np.max(np.linalg.norm(diff, axis=1), initial=0.0)) / self.k_t
+        # only sticking nodes creep; a slipping node's traction is on the cone (mu p) and
+        # changes with p, which the normal updates already converge
+        self._pnode.interpolate(self._p_expr)
+        p = np.maximum(self._pnode.x.array[d], 0.0)
+        stick = np.linalg.norm(tT[d], axis=1) < self.mu * p * (1.0 - 1e-6)
+        c = float(np.max(np.linalg.norm(diff[stick], axis=1), initial=0.0)) / self.k_t
         return self.problem.comm.allreduce(c, op=MPI.MAX)
 
     def _set_lambda_t(self, tT: np.ndarray) -> None:
@@ -274,4 +279,5 @@ class RigidContact:
                                self.translation.value, self.facet_tags, self.tag,
                                gap_tol_mm=self.gap_tol_mm, pressure=self.terms.pressure,
                                tangential_traction=self.terms.tangential_traction, axes=axes,
-                               comm=self.problem.comm)
+                               comm=self.problem.comm,
+                               metadata=VERTEX_RULE if self.quadrature == "vertex" else None)

@@ -45,18 +45,20 @@ def _block(comm):
     return msh, mesh.meshtags(msh, fdim, idx[order], val[order])
 
 
-def _scene(mu: float, comm, pen_tol: float = PEN_TOL):
+def _scene(mu: float, comm, pen_tol: float = PEN_TOL, disc: str = "p2",
+           quadrature: str = "gauss"):
     from handfe.contact import HalfSpace
     from handfe.contact_problem import RigidContact
     from handfe.materials import NeoHookean
     from handfe.solver import Discretisation, HyperelasticProblem
 
     msh, ft = _block(comm)
-    prob = HyperelasticProblem(msh, NeoHookean.from_E_nu(1.0, 0.3), disc=Discretisation("p2"))
+    prob = HyperelasticProblem(msh, NeoHookean.from_E_nu(1.0, 0.3), disc=Discretisation(disc))
     top = ft.find(2)
     platen = prob.fix(top)
     plate = HalfSpace(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
-    contact = RigidContact(prob, plate, ft, 1, mu=mu, penetration_tol_mm=pen_tol)
+    contact = RigidContact(prob, plate, ft, 1, mu=mu, penetration_tol_mm=pen_tol,
+                           quadrature=quadrature)
     return prob, ft, top, platen, contact
 
 
@@ -145,10 +147,33 @@ def test_metrics_after_solve_balance_reaction_frictionless():
     "the stick anchor is nodal (P2) while stick/slip is decided per quadrature point: the "
     "return mapping in RigidContact.on_step changes the traction at quadrature points next to "
     "stuck nodes, so the friction force reported after solve() is 1.27 N for a 1.48 N reaction "
-    "(was 0 before the return mapping). Needs a quadrature-point history of the anchor."))
+    "(was 0 before the return mapping). Needs a quadrature-point history of the anchor; with "
+    "P1 and the vertex contact rule all of it is nodal and the force is exact (test below)."))
 def test_metrics_after_solve_report_friction_force():
     prob, ft, top, platen, contact = _scene(0.74, MPI.COMM_SELF)
     _load(prob, platen, contact, keep_last_anchor=False)
     R = prob.reaction(top)
     m = contact.metrics()
     assert m.tangential_force_N == pytest.approx(float(np.linalg.norm(R[:2])), rel=1e-3)
+
+
+def test_vertex_quadrature_reports_the_friction_force_after_solve():
+    """With P1 and the vertex contact rule, stick/slip, the anchor and the force all live at the
+    nodes: the friction force reported right after solve() (anchor return-mapped) is the
+    reaction's, which the Gauss rule misses (xfail above)."""
+    prob, ft, top, platen, contact = _scene(0.74, MPI.COMM_SELF, disc="p1",
+                                            quadrature="vertex")
+    _load(prob, platen, contact, keep_last_anchor=False)
+    R = prob.reaction(top)
+    m = contact.metrics()
+    assert R[2] < -0.5  # pressed
+    assert m.tangential_force_N == pytest.approx(float(np.linalg.norm(R[:2])), rel=1e-6)
+    assert m.normal_force_N == pytest.approx(abs(R[2]), rel=1e-6)
+    assert m.tangential_force_N > 0.3 * abs(R[2])  # friction carries a real load
+
+
+def test_vertex_quadrature_needs_linear_elements():
+    from handfe.errors import InputError
+
+    with pytest.raises(InputError, match="vertex"):
+        _scene(0.74, MPI.COMM_SELF, quadrature="vertex")

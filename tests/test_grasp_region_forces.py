@@ -56,3 +56,11 @@ def test_nodal_forces_partition_into_regions():
         assert r[f"{reg}_distal"]["normal_force_N"] == pytest.approx(fz, rel=1e-12)
     assert r["index"]["force_vector_N"][2] == pytest.approx(n_top / 2, rel=1e-12)
     assert r["ring"]["normal_force_N"] == 0.0
+    # every node loaded: the mean pressure is the total normal load over the face area (1 mm2)
+    both = {k: r[k] for k in ("index", "middle")}
+    load = sum(v["force_vector_N"][2] for v in both.values())
+    assert load == pytest.approx(n_top)
+    for v in both.values():
+        assert v["mean_pressure_kPa"] == pytest.approx(1e3 * n_top, rel=1e-12)
+        # an interior node carries 1 N on h^2 = 1/16 mm2; boundary nodes on less area
+        assert v["peak_pressure_kPa"] >= 1e3 * N * N * (1 - 1e-12)

@@ -9,8 +9,10 @@ the deformed facet. All sums are over owned facets and reduced over ranks.
 Forces: with the consistent nodal contact forces (the contact residual at the skin nodes,
 ``node_force``), each node's force is shared equally by the outer-skin facets around it, so the
 regions add up exactly to the force on the object that the equilibrium check uses; the normal
-part is along the object's normal at the node, and the mean pressure is the normal load over
-the contact area. The vertex-rule integral of the interpolated pressure is the fallback: on a
+part is along the object's normal at the node. A node's pressure is its normal force over its
+tributary area (a third of each facet around it); the peak is the largest, the mean is the
+normal load over the tributary area of the loaded nodes (never above the peak; on a coarse mesh
+that area is larger than the gap-based contact area). The map uses the nodal pressures. The vertex-rule integral of the interpolated pressure is the fallback: on a
 coarse pad (a contact patch of a few facets) it can differ from the nodal forces several times.
 """
 
@@ -33,9 +35,10 @@ def region_of(code: int) -> tuple[str, str]:
     return REGIONS[r - 1], (PHALANGES[ph - 1] if ph else "")
 
 
-def _shared_count(mesh, fun, nodes: np.ndarray) -> np.ndarray:
-    """Per geometry node: the number of ``nodes`` facets (over all ranks) that touch it.
-    ``fun``: any scalar-or-vector P1 Function (its space's dofmap is used)."""
+def _shared_count(mesh, fun, nodes: np.ndarray, weights: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Per geometry node: the number of ``nodes`` facets (over all ranks) that touch it, or with
+    ``weights`` (one per facet vertex, shape of ``nodes``) their sum."""
     from dolfinx import fem
     from dolfinx.cpp.la import ScatterMode
 
@@ -46,7 +49,7 @@ def _shared_count(mesh, fun, nodes: np.ndarray) -> np.ndarray:
     g2d = np.full(mesh.geometry.x.shape[0], -1, dtype=np.int64)
     g2d[geo[:, :dofs.shape[1]].reshape(-1)] = dofs.reshape(-1)
     cnt = np.zeros(mesh.geometry.x.shape[0])
-    np.add.at(cnt, nodes.reshape(-1), 1.0)
+    np.add.at(cnt, nodes.reshape(-1), 1.0 if weights is None else weights.reshape(-1))
     used = g2d >= 0
     c.x.array[g2d[used]] = cnt[used]
     c.x.scatter_reverse(ScatterMode.add)
@@ -88,9 +91,15 @@ def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float, node
     fd = {"codes": codes, "xf": xf, "g": g, "n": n.reshape(-1, 3, 3), "p": pv, "t": tv,
           "area_c": area_c, "area": full}
     if node_force is not None:
-        cnt = _shared_count(mesh, node_force, nodes)
-        fn = _node_values(node_force, mesh)
-        fd["f"] = fn[nodes] / np.maximum(cnt[nodes], 1.0)[..., None]
+        cnt = np.maximum(_shared_count(mesh, node_force, nodes)[nodes], 1.0)
+        # tributary (lumped) area of each node: a third of every facet around it
+        atrib = _shared_count(mesh, node_force, nodes, np.repeat(full[:, None] / 3.0, 3, 1))
+        f = _node_values(node_force, mesh)[nodes]
+        fd["f"] = f / cnt[..., None]
+        # nodal pressure: the node's normal force over its tributary area (MPa)
+        fd["p_node"] = np.maximum(-np.einsum("fvi,fvi->fv", f, fd["n"]), 0.0) \
+            / np.maximum(atrib[nodes], 1e-300)
+        fd["a_share"] = atrib[nodes] / cnt  # this facet's share of the node's area
     return fd
 
 
@@ -127,19 +136,25 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
         if nodal:
             z3 = np.zeros(3)
             psum = comm.allreduce(float(fnsum_f[m].sum()) if len(codes) else 0.0, op=MPI.SUM)
+            # mean pressure = normal load / tributary area of the loaded nodes (an area
+            # weighted mean of the nodal pressures, so never above the peak)
+            aload = comm.allreduce(float((fd["a_share"][m] * (fd["p_node"][m] > 0)).sum())
+                                   if len(codes) else 0.0, op=MPI.SUM)
+            peak = comm.allreduce(float(fd["p_node"][m].max(initial=0.0)), op=MPI.MAX)
             fvec = comm.allreduce(fvec_f[m].sum(axis=0) if len(codes) else z3, op=MPI.SUM)
             fnv = comm.allreduce(fnorm_f[m].sum(axis=0) if len(codes) else z3, op=MPI.SUM)
             tvec = fvec - fnv
             nforce = float(np.linalg.norm(fnv))
         else:
             psum = comm.allreduce(float((pm[m] * fd["area"][m]).sum()), op=MPI.SUM)
+            aload = area
+            peak = comm.allreduce(float(fd["p"][m].max(initial=0.0)), op=MPI.MAX)
             fvec = comm.allreduce((pm[m, None] * nm[m] * fd["area"][m, None]).sum(axis=0),
                                   op=MPI.SUM)
             tvec = comm.allreduce((tm[m] * fd["area"][m, None]).sum(axis=0), op=MPI.SUM)
             nforce = float(np.linalg.norm(fvec))
-        peak = comm.allreduce(float(fd["p"][m].max(initial=0.0)), op=MPI.MAX)
         out[k] = {"contact_area_mm2": area,
-                  "mean_pressure_kPa": 1e3 * psum / area if area > 0 else 0.0,
+                  "mean_pressure_kPa": 1e3 * psum / aload if aload > 0 else 0.0,
                   "peak_pressure_kPa": 1e3 * peak,
                   "normal_force_N": nforce,
                   "tangential_force_N": float(np.linalg.norm(tvec)),
@@ -151,7 +166,7 @@ def pressure_map_png(fd: dict, hand_R: np.ndarray, path: Path, comm: MPI.Comm, *
                      title: str = "", obstacle_outline=None) -> None:
     """Palmar view (looking at the palm along hand -z) of the deformed skin, coloured by contact
     pressure (kPa), grey where there is none; region borders drawn in black."""
-    loc = (fd["xf"], fd["p"], fd["codes"])
+    loc = (fd["xf"], fd.get("p_node", fd["p"]), fd["codes"])
     allp = comm.gather(loc, root=0)
     if comm.rank != 0:
         return

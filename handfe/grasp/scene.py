@@ -787,17 +787,25 @@ class GraspFE:
                     self.say(f"    {', '.join(active)} stop closing here: {exc}")
                     inc = {}
                     break
-                if s.step_uzawa:
-                    self.augment(s.step_penetration_mm)
-                else:
-                    self._stiffen()
-                if snap is None or retry == 3:
-                    break
                 # a digit far past its force (the pad stiffens abruptly once it presses): back
-                # to the step's start and a log-force regula falsi for the overshooting digits
-                f_new = self.digit_forces()
-                over = [d for d in active if f_new[d] > (1.0 + s.digit_force_rtol)
-                        * s.digit_force_N and forces[d] < s.digit_force_N]
+                # to the step's start and a log-force regula falsi for the overshooting digits.
+                # Checked before the Uzawa updates too (they only add force): no updates are
+                # spent on a step that is redone anyway
+                over: list[str] = []
+                f_new: dict[str, float] = {}
+                for phase in ("solve", "uzawa"):
+                    if phase == "uzawa":
+                        if s.step_uzawa:
+                            self.augment(s.step_penetration_mm)
+                        else:
+                            self._stiffen()
+                    if snap is None or retry == 3:
+                        continue
+                    f_new = self.digit_forces()
+                    over = [d for d in active if f_new[d] > (1.0 + s.digit_force_rtol)
+                            * s.digit_force_N and forces[d] < s.digit_force_N]
+                    if over:
+                        break
                 if not over:
                     break
                 self.say("    " + ", ".join(f"{d} {f_new[d]:.2f} N" for d in over)
