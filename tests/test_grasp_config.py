@@ -209,3 +209,73 @@ def test_pre_close_stops_at_the_clearance_and_flags_a_miss():
     for j in released_joints(("index",)):
         assert closed[j.dof] == pytest.approx(min(pose[j.dof] + c.closing_deg, kin.hi[
             [k.dof for k in kin.joints].index(j.dof)]))
+
+
+class _FakeClosing:
+    """Stand-in for :class:`handfe.grasp.scene.GraspFE` in the angles-mode closing loop: each
+    digit's force grows exponentially with its closing angle; a step that moves the thumb
+    together with another digit 'fails to converge' (as the whole-hand cylinder did)."""
+
+    def __init__(self, digits):
+        from types import SimpleNamespace
+
+        from handfe.grasp.config import SolverSpec
+
+        self.grasp = SimpleNamespace(digits=digits)
+        self.joints = [SimpleNamespace(digit=d) for d in digits]
+        self.kin = SimpleNamespace(hi=np.full(len(digits), 90.0),
+                                   clamp=lambda t: np.minimum(t, 90.0))
+        self.wf = SimpleNamespace(solver=SolverSpec(closing_secant=True, step_uzawa=False,
+                                                    digit_force_N=5.0, digit_force_rtol=0.2,
+                                                    closing_deg=12.0, closing_step_deg=0.5))
+        self.theta = np.zeros(len(digits))
+        self.stalled = {}
+        self.log = []
+        self.steps = []
+
+    def say(self, msg):
+        self.log.append(msg)
+
+    def digit_forces(self):
+        return {d: 0.05 * float(np.expm1(1.2 * t)) for d, t in zip(self.grasp.digits, self.theta)}
+
+    def _go_to(self, theta, *, label, max_cuts=6):
+        from handfe.errors import SolverError
+
+        moving = [d for d, a, b in zip(self.grasp.digits, theta, self.theta) if a != b]
+        if "thumb" in moving and len(moving) > 1:
+            raise SolverError(f"load step '{label}' did not converge", load_step=1)
+        self.steps.append(moving)
+        self.theta = np.array(theta, dtype=float)
+
+    def _snapshot(self):
+        return {"theta": self.theta.copy()}
+
+    def _restore(self, snap):
+        self.theta = snap["theta"].copy()
+
+    def _closing_increment(self, last, closed, force):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._closing_increment(self, last, closed, force)
+
+    def _stiffen(self):
+        pass
+
+    def augment(self, tol_mm=None):
+        pass
+
+    def torques(self):
+        return {}
+
+
+def test_closing_redoes_a_failed_multi_digit_step_one_digit_at_a_time():
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeClosing(("thumb", "index", "middle"))
+    GraspFE.solve_angles(fake)
+    assert fake.stalled == {}
+    assert any("one digit at a time" in m for m in fake.log)
+    assert all(len(m) == 1 for m in fake.steps[1:])  # after the failure: one digit per step
+    for d, f in fake.digit_forces().items():
+        assert 4.0 <= f <= 6.0, (d, f)

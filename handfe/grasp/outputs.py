@@ -12,8 +12,9 @@ regions add up exactly to the force on the object that the equilibrium check use
 part is along the object's normal at the node. A node's pressure is its normal force over its
 tributary area (a third of each facet around it); the peak is the largest, the mean is the
 normal load over the tributary area of the loaded nodes (never above the peak; on a coarse mesh
-that area is larger than the gap-based contact area). The map uses the nodal pressures. The vertex-rule integral of the interpolated pressure is the fallback: on a
-coarse pad (a contact patch of a few facets) it can differ from the nodal forces several times.
+that area is larger than the gap-based contact area). The map uses the nodal pressures. The
+vertex-rule integral of the interpolated pressure is the fallback: on a coarse pad (a contact
+patch of a few facets) it can differ from the nodal forces several times.
 """
 
 from __future__ import annotations

@@ -481,7 +481,7 @@ class GraspFE:
         self._dbc = 0.0  # norm of the bone displacement increment of that step
 
     # -- one boundary-condition step with cutting
-    def _go_to(self, theta: np.ndarray, *, label: str) -> None:
+    def _go_to(self, theta: np.ndarray, *, label: str, max_cuts: int = 6) -> None:
         theta = self.kin.clamp(theta)
         skel = self.kin.skeleton(theta)
         target = self.kin.motions(skel)
@@ -546,7 +546,7 @@ class GraspFE:
             hist = " ".join(f"{r:.1e}" for r in self.solver.history[-6:])
             self.say(f"    {label}: Newton failed ({reason}; last residuals {hist}); cutting the "
                      f"step to {blend:.3g}")
-            if cuts > 6:
+            if cuts > max_cuts:
                 self.bc.set(prev if done_frac == 0 else target, 1.0 if done_frac == 0 else
                             done_frac, prev)
                 last = self.solver.history[-1] if self.solver.history else float("nan")
@@ -756,35 +756,50 @@ class GraspFE:
         k = 0
         last: dict[str, tuple[float, float]] = {}  # digit -> (closed, force) before its last step
         f_stop = (1.0 - s.digit_force_rtol) * s.digit_force_N
+        # digits that close one at a time: a step of several digits that fails is redone digit
+        # by digit, so one digit whose step Newton cannot solve does not stop the others
+        solo: set[str] = set()
+        said = -1
         while True:
             forces = self.digit_forces()
             active = [d for d in self.grasp.digits if forces[d] < f_stop
                       and closed[d] < s.closing_deg - 1e-9 and d not in self.stalled
                       and np.any(theta[digit_of == d] < self.kin.hi[digit_of == d] - 1e-9)]
-            if k:
+            if k and said != k:
                 self.say(f"  closing step {k}: digit forces " + ", ".join(
                     f"{d} {f:.2f}" for d, f in forces.items()) + " N")
+                said = k
             if not active:
                 break
+            if solo & set(active):
+                active = [next(d for d in active if d in solo)]
             k += 1
             inc = {}
             for d in active:
                 inc[d] = min(self._closing_increment(last.get(d), closed[d], forces[d]),
                              s.closing_deg - closed[d])
                 last[d] = (closed[d], forces[d])
-            snap = self._snapshot() if s.closing_secant else None
+            snap = self._snapshot()
+            retreat = s.closing_secant
             for retry in range(4):
                 theta = self.theta.copy()
                 for d in active:
                     theta[digit_of == d] += inc[d]
                 theta = self.kin.clamp(theta)
                 try:
-                    self._go_to(theta, label=f"closing {k} ({', '.join(active)})")
+                    self._go_to(theta, label=f"closing {k} ({', '.join(active)})",
+                                max_cuts=3 if len(active) > 1 else 6)
                 except SolverError as exc:
-                    # keep the last converged state: these digits hold where they are, the
-                    # others go on; the summary says which digits stalled and why
-                    self.stalled.update({d: str(exc) for d in active})
-                    self.say(f"    {', '.join(active)} stop closing here: {exc}")
+                    # back to the last converged step; several digits: redo them one at a
+                    # time; one digit: it holds where it is and the others go on (the
+                    # summary says which digits stalled and why)
+                    self._restore(snap)
+                    if len(active) > 1:
+                        solo.update(active)
+                        self.say(f"    {', '.join(active)}: closing one digit at a time")
+                    else:
+                        self.stalled.update({d: str(exc) for d in active})
+                        self.say(f"    {', '.join(active)} stop closing here: {exc}")
                     inc = {}
                     break
                 # a digit far past its force (the pad stiffens abruptly once it presses): back
@@ -799,7 +814,7 @@ class GraspFE:
                             self.augment(s.step_penetration_mm)
                         else:
                             self._stiffen()
-                    if snap is None or retry == 3:
+                    if not retreat or retry == 3:
                         continue
                     f_new = self.digit_forces()
                     over = [d for d in active if f_new[d] > (1.0 + s.digit_force_rtol)
