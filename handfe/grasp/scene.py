@@ -513,16 +513,21 @@ class GraspFE:
             if not ok and (self._fallback_ls == "bt" or np.isfinite(
                     self.solver.history[-1] if self.solver.history else 0.0)):
                 # the first line search failed: backtracking stalls at a kink of the contact
-                # law, full steps may invert cells (NaN); the other one from the same start
-                # before cutting the step
+                # law (a small residual that no longer falls), full steps from the step's start
+                # may invert cells (NaN). Full steps go on from where backtracking stopped
+                # (close to the solution, they jump the kink); else the other line search from
+                # the step's start, before cutting the step
                 hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
-                self._set_state(w0)
-                self.bc.predict(bc_conv)
                 its0 = its
+                where = "from there"
+                if self.solver.line_search != "bt" or not self.solver.adopt_last_iterate():
+                    self._set_state(w0)
+                    self.bc.predict(bc_conv)
+                    where = "from the step's start"
                 ok, its, reason = self.solver.solve(self._fallback_ls)
                 self.say(f"    {label}: {self.solver.line_search} line search failed ({hist}); "
-                         f"{self._fallback_ls} {'converged' if ok else 'failed too'} ({its} "
-                         f"iterations)")
+                         f"{self._fallback_ls} {where} {'converged' if ok else 'failed too'} "
+                         f"({its} iterations)")
                 its += its0
             if ok:
                 self._dw = self.problem.w.x.array - w0
@@ -608,6 +613,12 @@ class GraspFE:
         state and call ``undo`` (which restores the data). Says how it went."""
         w0 = self.problem.w.x.array.copy()
         ok, its, reason = self.solver.solve()
+        if not ok and self.solver.line_search == "bt" and self.solver.adopt_last_iterate():
+            # backtracking stalled at a kink of the contact law: full steps from there
+            its0 = its
+            ok, its, reason = self.solver.solve("basic")
+            its += its0
+            what += " (bt stalled, full steps from there)"
         self.say(f"    {what}: Newton {'converged' if ok else 'failed: ' + reason} "
                  f"({its} iterations)")
         if not ok:
