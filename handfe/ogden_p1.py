@@ -26,6 +26,13 @@ def ogden_dev_stress_tangent(F: np.ndarray, mu: np.ndarray, alpha: np.ndarray, *
     of the isochoric Ogden energy for deformation gradients ``F`` (n, 3, 3) with per-cell
     parameters ``mu``, ``alpha`` (n, m). ``A[:, i, J, k, L] = dP_iJ / dF_kL``; None unless
     ``tangent``."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # an inverted cell (J <= 0, a Newton trial step) gives NaN, as the UFL kernel did:
+        # the line search or the step cut handles it
+        return _stress_tangent(F, mu, alpha, tangent)
+
+
+def _stress_tangent(F, mu, alpha, tangent):
     n = F.shape[0]
     C = np.einsum("nki,nkj->nij", F, F)
     c, N = np.linalg.eigh(C)  # c ascending (n, 3); N[:, :, a] eigenvector a
