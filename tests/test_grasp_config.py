@@ -259,10 +259,15 @@ class _FakeClosing:
 
         return GraspFE._closing_increment(self, last, closed, force)
 
+    def _overshoots(self, active, before):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._overshoots(self, active, before)
+
     def _stiffen(self):
         pass
 
-    def augment(self, tol_mm=None):
+    def augment(self, tol_mm=None, *, creep=True, stop=None):
         pass
 
     def torques(self):

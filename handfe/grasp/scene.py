@@ -626,21 +626,28 @@ class GraspFE:
             undo()
         return ok
 
-    def augment(self, tol_mm: float | None = None) -> None:
-        """Uzawa updates until the penetration (and stick creep) is <= the tolerance
-        (``tol_mm``, default the contact's). A re-solve that fails restores the last converged
-        state and multipliers and stops (the penetration reached is reported, never hidden)."""
+    def augment(self, tol_mm: float | None = None, *, creep: bool = True,
+                stop: Callable[[], bool] | None = None) -> None:
+        """Uzawa updates until the penetration (and, if ``creep``, the stick creep) is <= the
+        tolerance (``tol_mm``, default the contact's), or ``stop()`` is true after a re-solve.
+        A re-solve that fails restores the last converged state and multipliers and stops (the
+        penetration reached is reported, never hidden)."""
         c = self.contact
-        if tol_mm is not None:
+        if tol_mm is not None or not creep:
             tols = c.penetration_tol_mm, c.stick_tol_mm
-            c.penetration_tol_mm = c.stick_tol_mm = tol_mm
+            if tol_mm is not None:
+                c.penetration_tol_mm = c.stick_tol_mm = tol_mm
+            if not creep:
+                c.stick_tol_mm = math.inf
             try:
-                self.augment()
+                self.augment(stop=stop)
             finally:
                 c.penetration_tol_mm, c.stick_tol_mm = tols
             return
         prev = float("nan")
         for _ in range(self.wf.solver.max_augment):
+            if stop is not None and stop():
+                return
             lam = c.lambda_n.x.array.copy()
             lam_t = None if c.lambda_t is None else c.lambda_t.x.array.copy()
             k = float(c.k_n.value)
@@ -755,6 +762,15 @@ class GraspFE:
         return secant_closing_increment(last, closed, force, s.digit_force_N,
                                         s.digit_force_rtol, s.closing_step_deg)
 
+    def _overshoots(self, active: list[str], before: dict[str, float]
+                    ) -> tuple[list[str], dict[str, float]]:
+        """Digits of ``active`` that were below ``digit_force_N`` (forces ``before``) and are
+        now past (1 + rtol) x it; and the digit forces now."""
+        s = self.wf.solver
+        now = self.digit_forces()
+        return [d for d in active if now[d] > (1.0 + s.digit_force_rtol) * s.digit_force_N
+                and before[d] < s.digit_force_N], now
+
     def solve_angles(self) -> None:
         """Each digit whose contact force is below ``digit_force_N`` closes its released joints
         by ``closing_step_deg`` per load step (the others hold), until every digit carries its
@@ -819,17 +835,19 @@ class GraspFE:
                 # spent on a step that is redone anyway
                 over: list[str] = []
                 f_new: dict[str, float] = {}
+                check = retreat and retry < 3
                 for phase in ("solve", "uzawa"):
                     if phase == "uzawa":
+                        # penetration only (stick creep is the final Uzawa phase's job); the
+                        # updates stop as soon as a digit overshoots (they only add force)
                         if s.step_uzawa:
-                            self.augment(s.step_penetration_mm)
+                            self.augment(s.step_penetration_mm, creep=False,
+                                         stop=(lambda a=active, f=forces: bool(
+                                             self._overshoots(a, f)[0])) if check else None)
                         else:
                             self._stiffen()
-                    if not retreat or retry == 3:
-                        continue
-                    f_new = self.digit_forces()
-                    over = [d for d in active if f_new[d] > (1.0 + s.digit_force_rtol)
-                            * s.digit_force_N and forces[d] < s.digit_force_N]
+                    if check:
+                        over, f_new = self._overshoots(active, forces)
                     if over:
                         break
                 if not over:
