@@ -66,6 +66,9 @@ def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\ndigit_force_rtol = 1.5\n')
     with pytest.raises(ConfigError, match="digit_force_rtol"):
         load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nresolve_linesearch = "l2"\n')
+    with pytest.raises(ConfigError, match="resolve_linesearch"):
+        load_workflow(p)
 
 
 def test_secant_closing_increment():

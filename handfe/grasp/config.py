@@ -112,6 +112,9 @@ class SolverSpec:
     # Uzawa update enforces the gap (P1 elements only; docs/contact.md); "gauss" = 2nd order
     contact_quadrature: str = field(default="gauss", metadata=choices("gauss", "vertex"))
     newton_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
+    # line search of the re-solves after a change of the contact data (Uzawa update, penalty
+    # increase) from a converged state; "basic" falls back to "bt" from that state
+    resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
     nu: float = field(default=0.49, metadata=bounds(0.3, 0.4999))
 
 

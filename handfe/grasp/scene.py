@@ -612,13 +612,19 @@ class GraspFE:
         """Re-solve after a change of the contact data; on failure restore the last converged
         state and call ``undo`` (which restores the data). Says how it went."""
         w0 = self.problem.w.x.array.copy()
-        ok, its, reason = self.solver.solve()
-        if not ok and self.solver.line_search == "bt" and self.solver.adopt_last_iterate():
-            # backtracking stalled at a kink of the contact law: full steps from there
+        ls = self.wf.solver.resolve_linesearch
+        ok, its, reason = self.solver.solve(ls)
+        if not ok:
             its0 = its
-            ok, its, reason = self.solver.solve("basic")
+            if ls == "bt" and self.solver.adopt_last_iterate():
+                # backtracking stalled at a kink of the contact law: full steps from there
+                ok, its, reason = self.solver.solve("basic")
+                what += " (bt stalled, full steps from there)"
+            elif ls == "basic":
+                self._set_state(w0)
+                ok, its, reason = self.solver.solve("bt")
+                what += " (full steps failed, bt)"
             its += its0
-            what += " (bt stalled, full steps from there)"
         self.say(f"    {what}: Newton {'converged' if ok else 'failed: ' + reason} "
                  f"({its} iterations)")
         if not ok:

@@ -1,0 +1,107 @@
+"""Cost of one Newton iteration of a grasp workflow's FE problem: residual, Jacobian (tissue
+and contact forms), MUMPS factorisation + solve; with the NumPy Ogden kernel (default) and,
+with ``--ufl``, the UFL form it replaced (its first compilation takes minutes).
+
+    .venv/bin/python benchmarks/grasp_iteration_profile.py precision coarse
+    mpirun -n 2 .venv/bin/python benchmarks/grasp_iteration_profile.py cylindrical coarse --ufl
+
+The scene is built by ``run_workflow`` up to the FE problem (pre-closed posture, no contact
+force yet: the matrix size and pattern are what matter); the loading stage is replaced by
+this measurement. Times in s, mean of 3 (factorisation: 2); CSV on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+from mpi4py import MPI
+from petsc4py import PETSc
+
+from handfe.grasp import run_workflow, scene
+from handfe.parallel import rprint
+
+
+def _measure(self) -> None:
+    """Replaces GraspFE.solve_angles: time the pieces of a Newton iteration, then stop."""
+    from dolfinx.fem import petsc as fp
+
+    comm = self.problem.comm
+    S = self.solver
+    x = self.problem.w.vector.copy()
+    b = x.duplicate()
+    A = S.A
+
+    def tm(f, n=3):
+        comm.barrier()
+        t = time.perf_counter()
+        for _ in range(n):
+            f()
+        comm.barrier()
+        return (time.perf_counter() - t) / n
+
+    def form(i):
+        def go():
+            A.zeroEntries()
+            fp.assemble_matrix(A, S.a[i], bcs=self.problem.bcs)
+            A.assemble()
+        return go
+
+    def factor_solve():
+        ksp = PETSc.KSP().create(comm)
+        ksp.setType("preonly")
+        pc = ksp.getPC()
+        pc.setType("lu")
+        pc.setFactorSolverType("mumps")
+        ksp.setOperators(A)
+        y = x.duplicate()
+        ksp.solve(b, y)
+        ksp.destroy()
+        y.destroy()
+
+    r = {"residual_s": tm(lambda: S._residual(None, x, b)),
+         "jacobian_s": tm(lambda: S._jacobian(None, x, A, A)),
+         "tissue_form_s": tm(form(0)), "contact_form_s": tm(form(1)),
+         "ogden_update_s": tm(lambda: self.problem.update())}
+    S._jacobian(None, x, A, A)
+    r["mumps_factor_solve_s"] = tm(factor_solve, 2)
+    _measure.result = r
+    raise _Done
+
+
+class _Done(Exception):
+    pass
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("workflow", help="workflow name (workflows/NAME.toml) or path")
+    ap.add_argument("mesh", help="mesh level: coarse, reduced, default, fine")
+    ap.add_argument("--ufl", action="store_true", help="the UFL Ogden form instead of NumPy")
+    a = ap.parse_args()
+    comm = MPI.COMM_WORLD
+    if a.ufl:
+        from handfe.grasp import fe
+
+        init = fe.GraspProblem.__init__
+
+        def ufl_init(self, *args, **kw):
+            kw["ogden_kernel"] = "ufl"
+            init(self, *args, **kw)
+
+        fe.GraspProblem.__init__ = ufl_init
+    scene.GraspFE.solve_angles = _measure
+    scene.GraspFE.solve_muscles = _measure
+    try:
+        run_workflow(a.workflow, mesh=a.mesh, progress=False, comm=comm)
+    except _Done:
+        pass
+    r = _measure.result
+    rprint("workflow,mesh,kernel,ranks," + ",".join(r))
+    rprint(f"{a.workflow},{a.mesh},{'ufl' if a.ufl else 'numpy'},{comm.size},"
+           + ",".join(f"{v:.3f}" for v in r.values()))
+
+
+if __name__ == "__main__":
+    main()
