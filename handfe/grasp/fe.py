@@ -198,6 +198,9 @@ class TwoFormNewton:
         self.line_search = "bt"
         self.snes = self._snes["bt"]
         self.iterations = 0
+        #: a failed solve whose last residual norm is <= this is accepted (0 = never)
+        self.stall_atol = 0.0
+        self.stalls = 0
 
     def _make_snes(self, line_search: str, rtol: float, atol: float, max_it: int) -> PETSc.SNES:
         snes = PETSc.SNES().create(self.problem.comm)
@@ -264,6 +267,12 @@ class TwoFormNewton:
         its = snes.getIterationNumber()
         self.iterations += its
         ok = reason > 0 and all(np.isfinite(self.history))
+        if not ok and self.history and all(np.isfinite(self.history)) \
+                and self.history[-1] <= self.stall_atol:
+            # a stall at a negligible residual (an active-set flip between two contact
+            # states): the state is converged for every output we report
+            ok, reason = True, f"stalled at {self.history[-1]:.1e} <= stall_atol"
+            self.stalls += 1
         if ok:
             self.x.copy(p.w.vector)
             p.w.x.scatter_forward()
