@@ -64,3 +64,21 @@ def test_nodal_forces_partition_into_regions():
         assert v["mean_pressure_kPa"] == pytest.approx(1e3 * n_top, rel=1e-12)
         # an interior node carries 1 N on h^2 = 1/16 mm2; boundary nodes on less area
         assert v["peak_pressure_kPa"] >= 1e3 * N * N * (1 - 1e-12)
+
+
+def test_mean_pressure_ignores_a_dust_of_tiny_nodal_forces():
+    """Two facets pressed with 1 MPa at every vertex and eight with a numerical dust of
+    1e-9 MPa: the mean pressure is 1 MPa (1000 kPa), not diluted by the dust's area."""
+    nf = 10
+    p = np.full((nf, 3), 1e-9)
+    p[:2] = 1.0
+    n = np.tile([0.0, 0.0, -1.0], (nf, 3, 1))  # object normal; pressing force along -n
+    a_share = np.full((nf, 3), 1.0 / 3.0)  # mm2 per facet vertex
+    f = p[..., None] * a_share[..., None] * -n  # force on the object (N)
+    fd = {"codes": np.full(nf, INDEX_DISTAL), "p": p, "t": np.zeros((nf, 3, 3)), "n": n,
+          "area_c": np.r_[np.ones(2), np.zeros(nf - 2)], "area": np.ones(nf), "f": f,
+          "p_node": p, "a_share": a_share}
+    r = region_metrics(fd, MPI.COMM_SELF)["index"]
+    assert r["mean_pressure_kPa"] == pytest.approx(1000.0, rel=1e-6)
+    assert r["peak_pressure_kPa"] == pytest.approx(1000.0)
+    assert r["normal_force_N"] == pytest.approx(2.0, rel=1e-6)
