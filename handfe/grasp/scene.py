@@ -679,8 +679,21 @@ class GraspFE:
                 c.set_penalty(k)
 
             creep = f", stick creep {c.last_creep_mm:.4f} mm" if c.lambda_t is not None else ""
-            if not self._resolve(f"Uzawa update {self.augmentations} (penetration was "
-                                 f"{c.last_penetration_mm:.4f} mm{creep})", undo):
+            what = (f"Uzawa update {self.augmentations} (penetration was "
+                    f"{c.last_penetration_mm:.4f} mm{creep})")
+            new = (c.lambda_n.x.array.copy(),
+                   None if c.lambda_t is None else c.lambda_t.x.array.copy())
+            ok = self._resolve(what, undo)
+            relax = 1.0
+            while not ok and relax > 0.3:
+                # under-relaxed update from the restored state: half the multiplier change,
+                # the old penalty (a full update that Newton cannot follow ended the phase)
+                relax /= 2.0
+                c.lambda_n.x.array[:] = lam + relax * (new[0] - lam)
+                if lam_t is not None and new[1] is not None:
+                    c.lambda_t.x.array[:] = lam_t + relax * (new[1] - lam_t)
+                ok = self._resolve(f"{what} x{relax:g}", undo)
+            if not ok:
                 return
 
     def _joint_geometry(self, skel):
