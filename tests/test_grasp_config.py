@@ -240,12 +240,14 @@ class _FakeClosing:
         self.log.append(msg)
 
     def digit_forces(self):
-        return {d: 0.05 * float(np.expm1(1.2 * t)) for d, t in zip(self.grasp.digits, self.theta)}
+        return {d: 0.05 * float(np.expm1(1.2 * t))
+                for d, t in zip(self.grasp.digits, self.theta, strict=True)}
 
     def _go_to(self, theta, *, label, max_cuts=6):
         from handfe.errors import SolverError
 
-        moving = [d for d, a, b in zip(self.grasp.digits, theta, self.theta) if a != b]
+        moving = [d for d, a, b in zip(self.grasp.digits, theta, self.theta, strict=True)
+                  if a != b]
         if "thumb" in moving and len(moving) > 1:
             raise SolverError(f"load step '{label}' did not converge", load_step=1)
         self.steps.append(moving)

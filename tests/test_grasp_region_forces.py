@@ -80,5 +80,13 @@ def test_mean_pressure_ignores_a_dust_of_tiny_nodal_forces():
           "p_node": p, "a_share": a_share}
     r = region_metrics(fd, MPI.COMM_SELF)["index"]
     assert r["mean_pressure_kPa"] == pytest.approx(1000.0, rel=1e-6)
+    assert r["contact_area_mm2"] == pytest.approx(2.0)
+    # a pressed facet whose vertices all sit beyond gap_tol (a flat facet on a curved object):
+    # its area is its loaded nodes' tributary share, not 0
+    fd["area_c"] = np.zeros(nf)
+    r = region_metrics(fd, MPI.COMM_SELF)["index"]
+    assert r["contact_area_mm2"] == pytest.approx(2.0)
+    assert r["mean_pressure_kPa"] == pytest.approx(1e3 * r["normal_force_N"]
+                                                   / r["contact_area_mm2"], rel=1e-6)
     assert r["peak_pressure_kPa"] == pytest.approx(1000.0)
     assert r["normal_force_N"] == pytest.approx(2.0, rel=1e-6)

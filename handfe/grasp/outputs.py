@@ -104,8 +104,8 @@ def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float, node
     return fd
 
 
-#: a node counts as loaded (mean pressure) when its pressure is >= this fraction of the
-#: region's peak
+#: a node counts as loaded (mean pressure, contact area) when its pressure is >= this
+#: fraction of the peak nodal pressure over the whole skin
 LOADED_FRACTION = 0.01
 
 
@@ -135,6 +135,22 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
         fn_s = -np.einsum("fvi,fvi->fv", f, fd["n"])  # pressing force along -n (>= 0)
         fvec_f = f.sum(axis=1)
         fnorm_f = (-fn_s[..., None] * fd["n"]).sum(axis=1)
+    if nodal:
+        # "loaded" nodes: at least LOADED_FRACTION of the peak nodal pressure of the whole
+        # skin (one threshold for all regions, so segments add up to their digit). The
+        # consistent nodal forces leave a dust of tiny forces around a patch, which made a
+        # 4.7 N thumb pad 'loaded' over ~200 mm2 on the coarse pinch
+        gpeak = comm.allreduce(float(fd["p_node"].max(initial=0.0)) if len(codes) else 0.0,
+                               op=MPI.MAX)
+        loaded = fd["p_node"] >= max(LOADED_FRACTION * gpeak, 1e-300) if len(codes) \
+            else np.zeros((0, 3), dtype=bool)
+        # a flat facet on a curved object touches with its interior (Gauss points) while its
+        # vertices stay > gap_tol away (sagitta a^2 / 8R ~ 0.06 mm on the coarse pinch): the
+        # gap-based area was 0 under a 4.4 N thumb. A facet's area is at least its share of
+        # its loaded nodes' tributary area
+        # (this replaces the positive-vertex-pressure share above, which counts the dust)
+        if len(codes):
+            area_c = np.maximum(fd["area_c"], (fd["a_share"] * loaded).sum(axis=1))
     out = {}
     for k, m in keys.items():
         area = comm.allreduce(float(area_c[m].sum()), op=MPI.SUM)
@@ -142,14 +158,10 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
             z3 = np.zeros(3)
             # mean pressure = normal load / tributary area of the loaded nodes (an area
             # weighted mean of the nodal pressures, so never above the peak)
-            # "loaded": at least LOADED_FRACTION of the region's peak (the consistent nodal
-            # forces leave a dust of tiny forces around a patch, which made a 4.7 N thumb pad
-            # 'loaded' over 200 mm2 of skin on the coarse pinch)
             peak = comm.allreduce(float(fd["p_node"][m].max(initial=0.0)), op=MPI.MAX)
-            loaded = fd["p_node"][m] >= max(LOADED_FRACTION * peak, 1e-300)
-            aload = comm.allreduce(float((fd["a_share"][m] * loaded).sum())
+            aload = comm.allreduce(float((fd["a_share"][m] * loaded[m]).sum())
                                    if len(codes) else 0.0, op=MPI.SUM)
-            psum = comm.allreduce(float((fn_s[m] * loaded).sum()) if len(codes) else 0.0,
+            psum = comm.allreduce(float((fn_s[m] * loaded[m]).sum()) if len(codes) else 0.0,
                                   op=MPI.SUM)
             fvec = comm.allreduce(fvec_f[m].sum(axis=0) if len(codes) else z3, op=MPI.SUM)
             fnv = comm.allreduce(fnorm_f[m].sum(axis=0) if len(codes) else z3, op=MPI.SUM)
