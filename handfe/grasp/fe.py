@@ -255,6 +255,7 @@ class TwoFormNewton:
         """Newton from the current state with ``line_search`` ("bt" or "basic"; default
         :attr:`line_search`). Returns (converged, iterations, SNES reason)."""
         line_search = line_search or self.line_search
+        self.last_line_search = line_search
         self.history.clear()
         p = self.problem
         p.w.vector.copy(self.x)
@@ -287,6 +288,14 @@ class TwoFormNewton:
         self.x.copy(p.w.vector)
         p.w.x.scatter_forward()
         return True
+
+    def continue_after_stall(self) -> tuple[bool, int, str] | None:
+        """After a failed backtracking :meth:`solve` with finite residuals (a stall at a kink
+        of the contact law): full Newton steps from its last iterate. None if that does not
+        apply (other line search, NaN residuals); the state is then unchanged."""
+        if getattr(self, "last_line_search", None) != "bt" or not self.adopt_last_iterate():
+            return None
+        return self.solve("basic")
 
     def full_residual(self) -> PETSc.Vec:
         """R (no boundary conditions) at the current state, ghosts summed."""

@@ -524,11 +524,13 @@ class GraspFE:
                 hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
                 its0 = its
                 where = "from there"
-                if self.solver.line_search != "bt" or not self.solver.adopt_last_iterate():
+                res = self.solver.continue_after_stall()
+                if res is None:
                     self._set_state(w0)
                     self.bc.predict(bc_conv)
                     where = "from the step's start"
-                ok, its, reason = self.solver.solve(self._fallback_ls)
+                    res = self.solver.solve(self._fallback_ls)
+                ok, its, reason = res
                 self.say(f"    {label}: {self.solver.line_search} line search failed ({hist}); "
                          f"{self._fallback_ls} {where} {'converged' if ok else 'failed too'} "
                          f"({its} iterations)")
@@ -620,9 +622,9 @@ class GraspFE:
         ok, its, reason = self.solver.solve(ls)
         if not ok:
             its0 = its
-            if ls == "bt" and self.solver.adopt_last_iterate():
-                # backtracking stalled at a kink of the contact law: full steps from there
-                ok, its, reason = self.solver.solve("basic")
+            res = self.solver.continue_after_stall()
+            if res is not None:
+                ok, its, reason = res
                 what += " (bt stalled, full steps from there)"
             elif ls == "basic":
                 self._set_state(w0)
