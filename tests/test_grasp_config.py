@@ -289,3 +289,62 @@ def test_closing_redoes_a_failed_multi_digit_step_one_digit_at_a_time():
     assert all(len(m) == 1 for m in fake.steps[1:])  # after the failure: one digit per step
     for d, f in fake.digit_forces().items():
         assert 4.0 <= f <= 6.0, (d, f)
+
+
+class _FakeUzawa:
+    """Stand-in for :class:`handfe.grasp.scene.GraspFE` in the Uzawa phase: one multiplier whose
+    exact value is 10; an Uzawa update jumps to it, but Newton 'fails' on a change of the
+    multiplier larger than 3 from the last converged state (as the pinch's re-solves did)."""
+
+    def __init__(self):
+        from types import SimpleNamespace
+
+        from handfe.grasp.config import SolverSpec
+
+        arr = SimpleNamespace(array=np.zeros(1))
+        self.contact = SimpleNamespace(
+            lambda_n=SimpleNamespace(x=arr), lambda_t=None, k_n=SimpleNamespace(value=1.0),
+            adaptive_penalty=None, last_penetration_mm=0.0, last_creep_mm=0.0,
+            penetration_tol_mm=0.01, stick_tol_mm=0.02, augment=self._augment,
+            set_penalty=lambda k: setattr(self.contact.k_n, "value", k))
+        self.wf = SimpleNamespace(solver=SolverSpec(max_augment=12))
+        self.augmentations = 0
+        self.converged = 0.0
+        self.resolves: list[tuple[float, bool]] = []
+
+    def _augment(self, final):
+        lam = self.contact.lambda_n.x.array
+        pen = abs(10.0 - lam[0]) / 100.0  # mm
+        self.contact.last_penetration_mm = pen
+        if pen <= self.contact.penetration_tol_mm:
+            return True, pen
+        lam[0] = 10.0
+        return False, pen
+
+    def _resolve(self, what, undo):
+        lam = float(self.contact.lambda_n.x.array[0])
+        ok = abs(lam - self.converged) <= 3.0
+        self.resolves.append((lam - self.converged, ok))
+        if ok:
+            self.converged = lam
+        else:
+            undo()
+        return ok
+
+    def _relax_multipliers(self, relax, lam, lam_t, new):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._relax_multipliers(self, relax, lam, lam_t, new)
+
+
+def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeUzawa()
+    GraspFE.augment(fake)
+    # the first update fails at x1 and x0.5 and converges at x0.25; every later update starts
+    # at x0.25 instead of failing twice again
+    assert [ok for _, ok in fake.resolves[:3]] == [False, False, True]
+    assert all(ok for _, ok in fake.resolves[3:])
+    assert fake.contact.last_penetration_mm <= 0.01
+    assert abs(fake.converged - 10.0) <= 1.0
