@@ -269,6 +269,11 @@ class _FakeClosing:
 
         return GraspFE._overshoots(self, active, before)
 
+    def _close_digits(self):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._close_digits(self)
+
     def _stiffen(self):
         pass
 
@@ -348,3 +353,105 @@ def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
     assert all(ok for _, ok in fake.resolves[3:])
     assert fake.contact.last_penetration_mm <= 0.01
     assert abs(fake.converged - 10.0) <= 1.0
+
+
+class _FakeMuscles:
+    """Stand-in for :class:`handfe.grasp.scene.GraspFE` in the muscles mode: two released
+    joints of one digit pressing on an object; the tissue/contact torque stiffens
+    exponentially with the flexion past first contact (a pad), the ligaments are a linear
+    spring, and the condensed tissue tangent is that torque's exact derivative."""
+
+    def __init__(self, tau_muscle):
+        from types import SimpleNamespace
+
+        from handfe.grasp.config import SolverSpec
+
+        self.joints = [SimpleNamespace(name="index_mcp", digit="index"),
+                       SimpleNamespace(name="index_pip", digit="index")]
+        self.wf = SimpleNamespace(solver=SolverSpec(max_step_deg=2.0, muscle_steps=4))
+        self.kin = SimpleNamespace(lo=np.full(2, -10.0), hi=np.full(2, 90.0),
+                                   clamp=lambda t: np.clip(t, -10.0, 90.0),
+                                   skeleton=lambda t: np.array(t, dtype=float),
+                                   motions=lambda sk: sk)
+        self.lig = SimpleNamespace(torques=lambda m, sk, joints: -20.0 * np.radians(sk))
+        self.contact = SimpleNamespace(uzawa=None)
+        self.solver = self.bc = None
+        self.problem = SimpleNamespace(comm=None)
+        self.theta = np.zeros(2)
+        self.tau_muscle = np.asarray(tau_muscle, dtype=float)
+        self.outer_iterations = self.cuts = 0
+        self.steps: list = []
+        self.log: list[str] = []
+        self.at_limit = np.zeros(2, dtype=bool)
+
+    # tissue torque on each joint's distal bones: -a (exp(b x) - 1), x = flexion (rad)
+    A, B = np.array([50.0, 30.0]), np.array([8.0, 10.0])
+
+    def say(self, msg):
+        self.log.append(msg)
+
+    def _tissue(self, theta):
+        return -self.A * np.expm1(self.B * np.radians(theta))
+
+    def torques(self):
+        t_tis = self._tissue(self.theta)
+        t_lig = self.lig.torques(None, self.theta, None)
+        g = self.tau_muscle + t_lig + t_tis
+        scale = np.maximum.reduce([np.abs(self.tau_muscle), np.abs(t_lig), np.abs(t_tis)])
+        return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis, "residual": g,
+                "relative": np.abs(g) / scale}
+
+    def _close_digits(self):
+        self.theta = np.array([2.0, 2.0])  # pressing lightly
+
+    def _joint_geometry(self, skel):
+        return [None, None], [None, None]
+
+    def _go_to(self, theta, *, label, max_cuts=6):
+        self.theta = np.array(theta, dtype=float)
+
+    def _snapshot(self):
+        return self.theta.copy()
+
+    def _restore(self, snap):
+        self.theta = snap.copy()
+
+    def augment(self, *a, **k):
+        pass
+
+    def digit_forces(self):
+        return {"index": float(-self._tissue(self.theta).sum() / 40.0)}
+
+    def _balance_torques(self, rtol, *, label):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._balance_torques(self, rtol, label=label)
+
+
+def _fake_muscles_run(monkeypatch, tau):
+    import handfe.grasp.fe as fe
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeMuscles(tau)
+    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
+        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    GraspFE.solve_muscles(fake)
+    return fake
+
+
+def test_muscles_mode_balances_the_torques_by_homotopy_from_the_closed_posture(monkeypatch):
+    tau = np.array([900.0, 400.0])  # N mm: far above what holds the lightly closed posture
+    fake = _fake_muscles_run(monkeypatch, tau)
+    tq = fake.torque
+    assert np.all(tq["relative"] <= fake.wf.solver.torque_rtol)
+    assert np.array_equal(fake.tau_muscle, tau)  # the applied torque is the muscle's at the end
+    # the balance is the closed form: tau = a (exp(b x) - 1) + 20 x
+    x = np.radians(fake.theta)
+    assert np.allclose(fake.A * np.expm1(fake.B * x) + 20.0 * x, tau, rtol=2e-3)
+    assert any("muscle load 0.250" in m for m in fake.log)
+
+
+def test_muscles_mode_more_flexor_force_never_lowers_the_contact_force(monkeypatch):
+    base = _fake_muscles_run(monkeypatch, [900.0, 400.0]).digit_forces()["index"]
+    more = _fake_muscles_run(monkeypatch, [990.0, 440.0]).digit_forces()["index"]
+    assert more > base

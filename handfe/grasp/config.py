@@ -72,6 +72,9 @@ class SolverSpec:
     max_outer: int = field(default=30, metadata=bounds(1, 200))
     torque_rtol: float = field(default=1e-3, metadata=bounds(1e-8, 0.5))
     max_step_deg: float = field(default=0.5, metadata=bounds(0.1, 20.0))
+    # muscles mode: the applied joint torque goes from the one holding the closed posture to
+    # the muscle torque in this many load steps (halved on failure)
+    muscle_steps: int = field(default=4, metadata=bounds(1, 64))
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

@@ -811,10 +811,17 @@ class GraspFE:
                 and before[d] < s.digit_force_N], now
 
     def solve_angles(self) -> None:
+        """Kinematic closing (:meth:`_close_digits`), then the Uzawa phase removes the remaining
+        penetration."""
+        self._close_digits()
+        self.augment()
+        self.digit_force_N = self.digit_forces()
+        self.torque = self.torques()
+
+    def _close_digits(self) -> None:
         """Each digit whose contact force is below ``digit_force_N`` closes its released joints
         by ``closing_step_deg`` per load step (the others hold), until every digit carries its
-        force or has closed by ``closing_deg`` (or sits at its joint limits); then the Uzawa
-        phase removes the remaining penetration."""
+        force or has closed by ``closing_deg`` (or sits at its joint limits)."""
         s = self.wf.solver
         theta = self.theta.copy()
         closed = dict.fromkeys(self.grasp.digits, 0.0)
@@ -904,41 +911,91 @@ class GraspFE:
             theta = self.theta.copy()
         self.closing_deg = closed
         self.digit_force_N = forces
-        self.augment()
+
+    def solve_muscles(self) -> None:
+        """Muscle-driven equilibrium by torque homotopy.
+
+        1. The digits close kinematically until each presses with ``digit_force_N`` (as in the
+           angles mode, without its final Uzawa phase): every digit is in contact, so every
+           released joint has a tissue stiffness to push against.
+        2. At that posture the joints hold the torque ``tau_hold = -(ligament + tissue)``.
+           The applied joint torque goes from ``tau_hold`` to the muscle torque in load steps
+           (``muscle_steps``; a step whose torque Newton fails is halved); at each step Newton
+           on the released joint angles (condensed FE tangent + ligament tangent) balances
+           applied + ligament + tissue torque. Starting each step from a balanced state keeps
+           it short; starting from the pre-closed posture (no contact, no stiffness) did not
+           converge.
+        3. Uzawa updates remove the penetration, and the balance is re-established (three
+           times at most), so the reported residual is the one with the final multipliers."""
+        s = self.wf.solver
+        self._close_digits()
+        tau_m = self.tau_muscle.copy()
+        tq = self.torques()
+        tau_hold = -(tq["ligament"] + tq["tissue"])
+        self.say("  muscle torques (N mm): " + ", ".join(
+            f"{j.name} {m:.0f} (holding {h:.0f})" for j, m, h in
+            zip(self.joints, tau_m, tau_hold, strict=True)))
+        done, ds = 0.0, 1.0 / s.muscle_steps
+        try:
+            while done < 1.0 - 1e-12:
+                lam = min(1.0, done + ds)
+                self.tau_muscle = tau_hold + lam * (tau_m - tau_hold)
+                snap = self._snapshot()
+                self.say(f"  muscle load {lam:.3f}")
+                ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
+                                                else s.torque_rtol, label=f"muscle load {lam:.3g}")
+                if ok:
+                    done = lam
+                    continue
+                self._restore(snap)
+                ds *= 0.5
+                self.cuts += 1
+                if ds < 1.0 / (16 * s.muscle_steps):
+                    raise SolverError(f"muscle load {lam:.3g} (from {done:.3g}): {why}",
+                                      load_step=len(self.steps) + 1, load_factor=done)
+                self.say(f"    muscle load {lam:.3g} failed ({why}): step halved")
+            for _ in range(3):
+                self.augment()
+                ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)")
+                pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
+                if ok and pen <= s.penetration_tol_mm:
+                    break
+            if not ok:
+                raise SolverError(f"torque balance at full muscle load: {why}",
+                                  load_step=len(self.steps) + 1, load_factor=1.0)
+        finally:
+            self.tau_muscle = tau_m
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
 
-    def solve_muscles(self) -> None:
+    def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
+        """Newton on the released joint angles until applied (``tau_muscle``) + ligament +
+        tissue torque is <= ``rtol`` (relative) at every free joint; a joint pushed past its
+        limit stays there (end stop). Returns (converged, why not)."""
         from handfe.grasp.fe import condensed_torque_jacobian
 
         s = self.wf.solver
-        self._go_to(self.theta, label="initial")
         max_rad = math.radians(s.max_step_deg)
-        final = False
+        rel = float("inf")
         for it in range(1, s.max_outer + 1):
-            self.outer_iterations = it
+            self.outer_iterations += 1
             tq = self.torques()
-            pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
             g = tq["residual"]
-            # a joint at a limit and pushed beyond it stays there: its end stop reacts
             self.at_limit = ((self.theta >= self.kin.hi - 1e-9) & (g > 0)) | (
                 (self.theta <= self.kin.lo + 1e-9) & (g < 0))
             free = ~self.at_limit
             relv = np.where(free, tq["relative"], 0.0)
             rel = float(relv.max(initial=0.0))
             k = int(np.argmax(relv))
-            self.say(f"  torque balance {it}: max relative residual {rel:.2e} at "
-                     f"{self.joints[k].name} (muscle {tq['muscle'][k]:.0f}, ligament "
-                     f"{tq['ligament'][k]:.0f}, tissue/contact {tq['tissue'][k]:.0f} N mm), "
-                     f"penetration {pen:.4f} mm, angles "
-                     + " ".join(f"{d:+.1f}" for d in self.theta - self.kin.theta0))
-            if rel <= s.torque_rtol and pen <= s.penetration_tol_mm:
+            self.say(f"    torque Newton {it}: max relative residual {rel:.2e} at "
+                     f"{self.joints[k].name} (applied {tq['muscle'][k]:.0f}, ligament "
+                     f"{tq['ligament'][k]:.0f}, tissue/contact {tq['tissue'][k]:.0f} N mm)")
+            if rel <= rtol:
                 self.torque = tq
-                return
-            final = final or rel < 50 * s.torque_rtol
+                return True, ""
             skel = self.kin.skeleton(self.theta)
-            ac, ds = self._joint_geometry(skel)
-            Jt = condensed_torque_jacobian(self.solver, self.bc, ac, ds, self.problem.comm)
+            ac, dsets = self._joint_geometry(skel)
+            Jt = condensed_torque_jacobian(self.solver, self.bc, ac, dsets, self.problem.comm)
             Jl = np.zeros_like(Jt)
             h = 1e-4
             base = self.lig.torques(self.kin.motions(skel), skel, self.joints)
@@ -954,21 +1011,15 @@ class GraspFE:
                 d[free] = np.linalg.solve(Jf, -g[free])
             except np.linalg.LinAlgError:
                 d[free] = np.linalg.lstsq(Jf, -g[free], rcond=None)[0]
-            # each joint moves at most max_step_deg per iteration (a joint with nothing to
-            # push against yet has a tiny tangent and would otherwise take huge steps)
+            # each joint moves at most max_step_deg per iteration (a joint with little to push
+            # against has a tiny tangent and would otherwise take huge steps)
             d = np.clip(d, -max_rad, max_rad)
-            self._go_to(self.theta + np.degrees(d), label=f"torque iteration {it}")
-            if final:
-                self.augment()
-        tq = self.torques()
-        self.torque = tq
-        relv = np.where(self.at_limit, 0.0, tq["relative"])
-        rel = float(relv.max(initial=0.0))
-        if rel > s.torque_rtol:
-            worst = self.joints[int(np.argmax(relv))].name
-            raise SolverError(f"torque balance not reached in {s.max_outer} iterations: max "
-                              f"relative residual {rel:.3g} at {worst}",
-                              load_step=len(self.steps), load_factor=1.0, residual=rel)
+            try:
+                self._go_to(self.kin.clamp(self.theta + np.degrees(d)),
+                            label=f"{label}, torque iteration {it}", max_cuts=3)
+            except SolverError as exc:
+                return False, str(exc)
+        return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
 
     # -- outputs
     def _fields(self):
