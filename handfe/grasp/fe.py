@@ -452,7 +452,9 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
     the bone reactions dR = K (v + dz) is turned into torques."""
     K = solver.full_matrix()
     A = solver.A
-    solver._jacobian(None, None, A, None)  # Dirichlet-reduced tangent at the converged state
+    x = solver.problem.w.vector.copy()
+    solver._jacobian(None, x, A, None)  # Dirichlet-reduced tangent at the converged state
+    x.destroy()
     ksp = PETSc.KSP().create(comm)
     ksp.setOperators(A)
     ksp.setType("preonly")
