@@ -449,7 +449,11 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
     """d(tissue torque_j)/d(theta_i) (N mm / rad) with the tissue in equilibrium: the bone
     nodes of the bones distal to joint i rotate about its axis (v = a_i x (x - c_i)), the free
     dofs follow (K_ff dz = -K_fb v, solved with the factorised Newton matrix), and the change of
-    the bone reactions dR = K (v + dz) is turned into torques."""
+    the bone reactions dR = K (v + dz) is turned into torques; plus the geometric part, the
+    change of the levers at fixed reactions (:func:`_lever_jacobian`). Joints form chains:
+    joint i is proximal to j when j's distal bones are a strict subset of i's, and then j's axis
+    and centre turn with theta_i."""
+    Jm = _lever_jacobian(solver, bc, axes_centres, distal_sets, comm)
     K = solver.full_matrix()
     A = solver.A
     x = solver.problem.w.vector.copy()
@@ -461,8 +465,6 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
     pc = ksp.getPC()
     pc.setType("lu")
     pc.setFactorSolverType("mumps")
-    n = len(axes_centres)
-    Jm = np.zeros((n, n))
     v, y, z, dR = (K.createVecRight() for _ in range(4))
     bcd = bc.bc_dofs_W
     n_owned = v.getLocalSize()
@@ -487,10 +489,44 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
         z.setArray(za)
         z.axpy(1.0, v)
         K.mult(z, dR)
-        Jm[:, i] = torques_from(dR.getArray(), bc, axes_centres, distal_sets, comm)
+        Jm[:, i] += torques_from(dR.getArray(), bc, axes_centres, distal_sets, comm)
     for o in (K, v, y, z, dR, ksp):
         o.destroy()
     return Jm
+
+
+def _lever_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets,
+                    comm) -> np.ndarray:
+    """Derivative of the torques sum a_j . ((x - c_j) x f) at *fixed* bone forces f (the
+    reactions of the converged state) as the bones turn, N mm / rad:
+    * i proximal to j: a_j, c_j and the nodes x turn together about a_i, which is the same as
+      f turning by -a_i: d = -a_j . ((x - c_j) x (a_i x f)) = f . ((a_j x (x - c_j)) x a_i);
+    * i = j, or i distal to j (a_j, c_j fixed, the nodes distal to i move by a_i x (x - c_i)):
+      d = a_j . ((a_i x (x - c_i)) x f) = f . (a_j x (a_i x (x - c_i))).
+    Of the order of torque x angle against the material stiffness: a few % near contact, but
+    Newton on the angles converges linearly without it."""
+    R = solver.full_residual()
+    r = R.getArray()
+    n = len(axes_centres)
+    J = np.zeros((n, n))
+    sets = [set(b) for b in distal_sets]
+    for j, (aj, cj) in enumerate(axes_centres):
+        for i, (ai, ci) in enumerate(axes_centres):
+            proximal = i != j and sets[j] < sets[i]
+            bones = sets[j] if proximal else sets[i] & sets[j]
+            s = 0.0
+            for b in bones:
+                if b not in bc.wdofs:
+                    continue
+                wd, comp, x = bc.node_data(b)
+                if proximal:
+                    g = np.cross(ai, np.cross(aj, x - cj))
+                else:
+                    g = np.cross(aj, np.cross(ai, x - ci))
+                s += float(np.sum(-r[wd] * g[np.arange(len(wd)), comp]))
+            J[j, i] = s
+    R.destroy()
+    return np.array(comm.allreduce(J, op=MPI.SUM))
 
 
 def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm) -> dict:
