@@ -73,3 +73,39 @@ def test_precision_angles_two_ranks(tmp_path_factory):
 
 
 
+
+
+@pytest.mark.mpi
+@pytest.mark.slow
+@pytest.mark.skipif(COMM.size == 1, reason="2-rank regression; runs under make test-mpi")
+def test_precision_light_grip_end_to_end_two_ranks(tmp_path_factory):
+    """CI-sized pinch: the whole workflow (posture, placement, pre-closing, partial meshing,
+    kinematic closing, Uzawa phase, outputs) with each digit closing to 1 N instead of 5 N (the
+    5 N run is the opt-in test above). Checks object equilibrium, the 0.01 mm penetration
+    target, that ring and little (not meshed) carry nothing, and the files."""
+    from dataclasses import replace
+
+    from handfe.grasp.config import load_workflow
+
+    wf = load_workflow("precision")
+    wf = replace(wf, mesh="coarse", loading="angles",
+                 solver=replace(wf.solver, digit_force_N=1.0),
+                 outputs=replace(wf.outputs, fields=False))
+    out = tmp_path_factory.mktemp("precision_light") if COMM.rank == 0 else None
+    out = COMM.bcast(out, root=0)
+    res = run_workflow(wf, out_dir=out, progress=False)
+    COMM.barrier()
+    s = res.summary
+    assert s["status"] == "done"
+    assert s["equilibrium_relative_error"] < 1e-6
+    assert s["max_penetration_mm"] <= wf.solver.penetration_tol_mm
+    assert s["skipped"]["digits"] == ["ring", "little"]
+    for r in ("ring", "little", "palm"):
+        assert res.regions[r]["normal_force_N"] == 0.0
+    for d in ("thumb", "index", "middle"):
+        assert 0.5 <= s["digit_force_N"][d] <= 2.0, (d, s["digit_force_N"])
+        assert res.regions[d]["contact_area_mm2"] > 0.0
+        assert res.regions[d]["mean_pressure_kPa"] <= res.regions[d]["peak_pressure_kPa"]
+    if COMM.rank == 0:
+        for f in ("regions.csv", "fingertips.csv", "summary.json", "pressure.png"):
+            assert (out / f).is_file(), f

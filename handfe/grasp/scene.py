@@ -1011,9 +1011,13 @@ class GraspFE:
                 d[free] = np.linalg.solve(Jf, -g[free])
             except np.linalg.LinAlgError:
                 d[free] = np.linalg.lstsq(Jf, -g[free], rcond=None)[0]
-            # each joint moves at most max_step_deg per iteration (a joint with little to push
-            # against has a tiny tangent and would otherwise take huge steps)
-            d = np.clip(d, -max_rad, max_rad)
+            # no joint moves more than max_step_deg per iteration (a joint with little to push
+            # against has a tiny tangent and would otherwise take huge steps); the step is
+            # scaled as a whole: clipping joint by joint turns the coupled Newton direction
+            big = float(np.abs(d).max(initial=0.0))
+            if big > max_rad:
+                d *= max_rad / big
+            self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d)))
             try:
                 self._go_to(self.kin.clamp(self.theta + np.degrees(d)),
                             label=f"{label}, torque iteration {it}", max_cuts=3)
