@@ -5,9 +5,10 @@ checked for physics; the 1-rank command for comparison::
 
     .venv/bin/handfe run workflows/precision.toml --mesh coarse --out R
 
-Opt-in (``HANDFE_GRASP_E2E=1 make test-mpi``): a run takes ~10 min on the 2-core machine
-(docs/grasp.md, measured runs), over the 3-min budget of a CI test, and gmsh's HXT meshes are
-not bit-reproducible, so no stored 1- vs 2-rank value is compared here (open).
+A pinch whose digits close to 1 N runs in CI (~4 min); the 5 N pinch is opt-in
+(``HANDFE_GRASP_E2E=1 make test-mpi``): a run takes ~10-20 min on the 2-core machine
+(docs/grasp.md, measured runs). gmsh's HXT meshes are not bit-reproducible, so no stored 1- vs
+2-rank value is compared here (open).
 """
 
 import json
@@ -82,7 +83,9 @@ def test_precision_light_grip_end_to_end_two_ranks(tmp_path_factory):
     """CI-sized pinch: the whole workflow (posture, placement, pre-closing, partial meshing,
     kinematic closing, Uzawa phase, outputs) with each digit closing to 1 N instead of 5 N (the
     5 N run is the opt-in test above). Checks object equilibrium, the 0.01 mm penetration
-    target, that ring and little (not meshed) carry nothing, and the files."""
+    target, that ring and little (not meshed) carry nothing, and the files. 224 s on 2 ranks
+    (1 Dec 2026: placement 25 s, meshing 53 s with two HXT retries, solve 142 s, 8 closing steps,
+    191 Newton iterations, 17 Uzawa updates, penetration 0.0024 mm, digits 1.1-1.3 N)."""
     from dataclasses import replace
 
     from handfe.grasp.config import load_workflow
