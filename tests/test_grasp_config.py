@@ -361,14 +361,15 @@ class _FakeMuscles:
     exponentially with the flexion past first contact (a pad), the ligaments are a linear
     spring, and the condensed tissue tangent is that torque's exact derivative."""
 
-    def __init__(self, tau_muscle):
+    def __init__(self, tau_muscle, coupling=0.0):
         from types import SimpleNamespace
 
         from handfe.grasp.config import SolverSpec
 
-        self.joints = [SimpleNamespace(name="index_mcp", digit="index"),
-                       SimpleNamespace(name="index_pip", digit="index")]
-        self.wf = SimpleNamespace(solver=SolverSpec(max_step_deg=2.0, muscle_steps=4))
+        self.joints = [SimpleNamespace(name="index_pip", digit="index"),
+                       SimpleNamespace(name="index_dip", digit="index")]
+        self.wf = SimpleNamespace(solver=SolverSpec(max_step_deg=2.0, muscle_steps=4,
+                                                    dip_pip_coupling=coupling))
         self.kin = SimpleNamespace(lo=np.full(2, -10.0), hi=np.full(2, 90.0),
                                    clamp=lambda t: np.clip(t, -10.0, 90.0),
                                    skeleton=lambda t: np.array(t, dtype=float),
@@ -383,6 +384,7 @@ class _FakeMuscles:
         self.steps: list = []
         self.log: list[str] = []
         self.at_limit = np.zeros(2, dtype=bool)
+        self.coupled: list = []
 
     # tissue torque on each joint's distal bones: -a (exp(b x) - 1), x = flexion (rad)
     A, B = np.array([50.0, 30.0]), np.array([8.0, 10.0])
@@ -397,9 +399,19 @@ class _FakeMuscles:
         t_tis = self._tissue(self.theta)
         t_lig = self.lig.torques(None, self.theta, None)
         g = self.tau_muscle + t_lig + t_tis
-        scale = np.maximum.reduce([np.abs(self.tau_muscle), np.abs(t_lig), np.abs(t_tis)])
-        return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis, "residual": g,
-                "relative": np.abs(g) / scale}
+        t_cpl = np.zeros(2)
+        for ip, idp, c in self.coupled:
+            t_cpl[idp], t_cpl[ip] = -g[idp], c * g[idp]
+        g = g + t_cpl
+        scale = np.maximum.reduce([np.abs(self.tau_muscle), np.abs(t_lig), np.abs(t_tis),
+                                   np.abs(t_cpl)])
+        return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis,
+                "coupling": t_cpl, "residual": g, "relative": np.abs(g) / scale}
+
+    def _coupling_matrix(self):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._coupling_matrix(self)
 
     def _close_digits(self):
         self.theta = np.array([2.0, 2.0])  # pressing lightly
@@ -428,11 +440,11 @@ class _FakeMuscles:
         return GraspFE._balance_torques(self, rtol, label=label)
 
 
-def _fake_muscles_run(monkeypatch, tau):
+def _fake_muscles_run(monkeypatch, tau, coupling=0.0):
     import handfe.grasp.fe as fe
     from handfe.grasp.scene import GraspFE
 
-    fake = _FakeMuscles(tau)
+    fake = _FakeMuscles(tau, coupling)
     monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
         -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
     GraspFE.solve_muscles(fake)
@@ -455,3 +467,18 @@ def test_muscles_mode_more_flexor_force_never_lowers_the_contact_force(monkeypat
     base = _fake_muscles_run(monkeypatch, [900.0, 400.0]).digit_forces()["index"]
     more = _fake_muscles_run(monkeypatch, [990.0, 440.0]).digit_forces()["index"]
     assert more > base
+
+
+def test_muscles_mode_dip_pip_coupling_balances_the_coupled_coordinate(monkeypatch):
+    tau = np.array([900.0, 400.0])
+    fake = _fake_muscles_run(monkeypatch, tau, coupling=2.0 / 3.0)
+    assert fake.coupled == [(0, 1, 2.0 / 3.0)]
+    # the DIP moved by 2/3 of the PIP's change from the closed posture (2, 2 deg)
+    d = fake.theta - 2.0
+    assert d[1] == pytest.approx(2.0 / 3.0 * d[0], rel=1e-9)
+    tq = fake.torque
+    assert np.all(tq["relative"] <= fake.wf.solver.torque_rtol)
+    # the coupling takes the DIP's imbalance and passes 2/3 of it to the PIP (no net work)
+    raw = tau + tq["ligament"] + tq["tissue"]
+    assert tq["coupling"][1] == pytest.approx(-raw[1])
+    assert raw[0] + 2.0 / 3.0 * raw[1] == pytest.approx(0.0, abs=1e-3 * np.abs(tau).max())

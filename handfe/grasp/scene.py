@@ -479,6 +479,8 @@ class GraspFE:
         self.cuts = 0
         self.torque: dict[str, np.ndarray] = {}
         self.at_limit = np.zeros(len(self.joints), dtype=bool)
+        # (PIP index, DIP index, ratio) pairs of the muscles mode's DIP-PIP coupling
+        self.coupled: list[tuple[int, int, float]] = []
         self._substep = 1.0  # fraction of a load step tried first (adapted in _go_to)
         self.stalled: dict[str, str] = {}  # angles mode: digits whose closing step failed
         self._dw: np.ndarray | None = None  # last accepted state increment (secant predictor)
@@ -727,10 +729,27 @@ class GraspFE:
         R.destroy()
         t_lig = self.lig.torques(self.kin.motions(skel), skel, self.joints)
         g = self.tau_muscle + t_lig + t_tis
+        # DIP-PIP coupling (muscles mode): the coupling carries what the DIP does not balance
+        # (-g at the DIP) and passes c x that to the PIP (no work along the coupled motion)
+        t_cpl = np.zeros(len(g))
+        for ip, idp, c in self.coupled:
+            t_cpl[idp] = -g[idp]
+            t_cpl[ip] = c * g[idp]
+        g = g + t_cpl
         scale = np.maximum.reduce([np.abs(self.tau_muscle), np.abs(t_lig), np.abs(t_tis),
-                                   np.full(len(g), 1e-9)])
-        return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis, "residual": g,
-                "relative": np.abs(g) / scale}
+                                   np.abs(t_cpl), np.full(len(g), 1e-9)])
+        return {"muscle": self.tau_muscle, "ligament": t_lig, "tissue": t_tis,
+                "coupling": t_cpl, "residual": g, "relative": np.abs(g) / scale}
+
+    def _coupling_matrix(self) -> np.ndarray:
+        """B (joints x coordinates) with d(theta) = B d(q): a coupled DIP follows c x its PIP."""
+        cols = [i for i in range(len(self.joints)) if i not in {d for _, d, _ in self.coupled}]
+        B = np.zeros((len(self.joints), len(cols)))
+        for k, i in enumerate(cols):
+            B[i, k] = 1.0
+        for ip, idp, c in self.coupled:
+            B[idp, cols.index(ip)] = c
+        return B
 
     def _digit_dofs(self) -> dict[str, list[np.ndarray]]:
         """Owned displacement dofs (per component) of each participating digit's outer skin."""
@@ -929,6 +948,11 @@ class GraspFE:
            times at most), so the reported residual is the one with the final multipliers."""
         s = self.wf.solver
         self._close_digits()
+        if s.dip_pip_coupling > 0.0:
+            idx = {j.name: i for i, j in enumerate(self.joints)}
+            self.coupled = [(idx[f"{j.digit}_pip"], i, s.dip_pip_coupling)
+                            for i, j in enumerate(self.joints)
+                            if j.name.endswith("_dip") and f"{j.digit}_pip" in idx]
         tau_m = self.tau_muscle.copy()
         tq = self.torques()
         tau_hold = -(tq["ligament"] + tq["tissue"])
@@ -977,6 +1001,7 @@ class GraspFE:
         s = self.wf.solver
         max_rad = math.radians(s.max_step_deg)
         rel = float("inf")
+        B = self._coupling_matrix()
         for it in range(1, s.max_outer + 1):
             self.outer_iterations += 1
             tq = self.torques()
@@ -1004,13 +1029,18 @@ class GraspFE:
                 th[i] += math.degrees(h)
                 sk = self.kin.skeleton(th)
                 Jl[:, i] = (self.lig.torques(self.kin.motions(sk), sk, self.joints) - base) / h
-            Jm = Jt + Jl
-            d = np.zeros(len(g))
-            Jf = Jm[np.ix_(free, free)]
+            # Newton in the coordinates q (d theta = B dq): B^T J B dq = -B^T g; a coordinate
+            # is held when one of its joints sits at its limit
+            Jq = B.T @ (Jt + Jl) @ B
+            gq = B.T @ g
+            fq = ~np.any((B != 0.0) & ~free[:, None], axis=0)
+            dq = np.zeros(B.shape[1])
+            Jf = Jq[np.ix_(fq, fq)]
             try:
-                d[free] = np.linalg.solve(Jf, -g[free])
+                dq[fq] = np.linalg.solve(Jf, -gq[fq])
             except np.linalg.LinAlgError:
-                d[free] = np.linalg.lstsq(Jf, -g[free], rcond=None)[0]
+                dq[fq] = np.linalg.lstsq(Jf, -gq[fq], rcond=None)[0]
+            d = B @ dq
             # no joint moves more than max_step_deg per iteration (a joint with little to push
             # against has a tiny tangent and would otherwise take huge steps); the step is
             # scaled as a whole: clipping joint by joint turns the coupled Newton direction
@@ -1080,6 +1110,7 @@ class GraspFE:
                              "muscle_Nmm": float(tq["muscle"][i]),
                              "ligament_Nmm": float(tq["ligament"][i]),
                              "tissue_contact_Nmm": float(tq["tissue"][i]),
+                             "coupling_Nmm": float(tq["coupling"][i]),
                              "residual_Nmm": float(tq["residual"][i]),
                              "relative_residual": float(tq["relative"][i]),
                              "at_limit": bool(self.at_limit[i])}
