@@ -259,6 +259,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                                    reach=reach)
             except ConfigError as exc:
                 err = str(exc)
+            except Exception as exc:  # noqa: BLE001 - rank 0 only: report, never hang rank 1
+                err = f"object placement failed on rank 0: {type(exc).__name__}: {exc}"
         err = comm.bcast(err, root=0)
         if err:
             raise ConfigError(err)
@@ -326,10 +328,15 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         say(f"mesh ({level}, digits {', '.join(grasp.digits)}): {n_cells} tets in "
             f"{stages['mesh']:.1f} s" + (f"; skipped {', '.join(skipped)}" if skipped else ""))
         H = model.skeleton.hand_frame
-        gaps_start = None
+        gaps_start: dict[str, float] | str | None = None
         if comm.rank == 0:
-            gaps_start = start_gaps(obstacle, shift, model.surface)
+            try:
+                gaps_start = start_gaps(obstacle, shift, model.surface)
+            except Exception as exc:  # noqa: BLE001 - rank 0 only: report, never hang rank 1
+                gaps_start = f"starting gaps failed on rank 0: {type(exc).__name__}: {exc}"
         gaps_start = comm.bcast(gaps_start, root=0)
+        if isinstance(gaps_start, str):
+            raise InputError(gaps_start)
         summary["object"]["gap_per_region_start_mm"] = gaps_start
         worst = min(gaps_start, key=gaps_start.get)
         say("starting gaps on the mesh: " + ", ".join(f"{r} {g:.2f}" for r, g in
