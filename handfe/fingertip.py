@@ -493,7 +493,9 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
     if comm.rank == 0:
         import gmsh
 
-        gmsh.initialize()
+        from handfe.anatomy.meshing import ensure_gmsh, release_gmsh
+
+        ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(f"fingertip_{geom.subject}")
         try:
@@ -503,7 +505,7 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
     err = comm.bcast(err, root=0)
     if err is not None:
         if comm.rank == 0:
-            gmsh.finalize()
+            release_gmsh(gmsh)
         raise RuntimeError(f"fingertip meshing failed for subject {geom.subject!r}: {err}")
     t_mesh = comm.bcast(time.perf_counter() - t0, root=0)
     import gmsh  # noqa: F811  (module needed as an argument on every rank)
@@ -511,7 +513,7 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
 
     msh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     if comm.rank == 0:
-        gmsh.finalize()
+        release_gmsh(gmsh)
     tags = {k: v for k, v in CELL_TAGS.items()
             if (k in ("skin", "subcutaneous")) == layered or k == "nail"}
     tags.update(FACET_TAGS)

@@ -230,3 +230,19 @@ def test_thin_subject_s3_meshes():
     assert m.cells_per_tag["nail"] > 0 and m.cells_per_tag["pulp"] > 0
     assert _cell_volumes(m, "pulp") + _cell_volumes(m, "nail") == pytest.approx(
         g.outer_volume_mm3() - g.bone_volume_mm3(), rel=0.03)
+
+
+def test_gmsh_usable_for_the_hand_after_a_fingertip_mesh(fm):
+    """The fingertip scene finalises gmsh; the hand meshing's once-per-process initialisation
+    must notice (it did not: the CI's pinch test then failed on rank 0 with gmsh's "Could not
+    get last error" and left rank 1 waiting)."""
+    import gmsh
+
+    from handfe.anatomy.meshing import ensure_gmsh
+
+    if MPI.COMM_WORLD.rank == 0:
+        build_fingertip_mesh(fm.geometry, level="reduced", comm=MPI.COMM_SELF)
+        ensure_gmsh(gmsh)
+        gmsh.option.setNumber("General.Terminal", 0)  # raises on a finalised gmsh
+        gmsh.model.add("after_fingertip")
+        gmsh.model.remove()

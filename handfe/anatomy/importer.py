@@ -233,9 +233,7 @@ def _import_rank0(gmsh, skin_path: Path, bones_dir: Path, t: float, level: str, 
             if np.any(winding_number(pts, B.vertices, B.faces) > 0.5):
                 raise InputError(f"{bones_dir}: bones {a} and {b} intersect")
     # --- gmsh model from discrete surfaces
-    if not meshing._GMSH_READY:
-        gmsh.initialize(readConfigFiles=False)
-        meshing._GMSH_READY = True
+    meshing.ensure_gmsh(gmsh)
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.model.add("imported")
     node0 = [1]

@@ -363,6 +363,21 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str,
     return {"quality": quality, "surface": surf}
 
 
+def ensure_gmsh(gmsh) -> None:
+    """Initialise gmsh once per process (gmsh 4.8 has no ``isInitialized()``): every module that
+    meshes goes through this and :func:`release_gmsh`, so that one finalising gmsh (the
+    fingertip scene did) does not leave the others calling into a finalised library."""
+    global _GMSH_READY
+    if not _GMSH_READY:
+        gmsh.initialize(readConfigFiles=False)
+        _GMSH_READY = True
+
+
+def release_gmsh(gmsh) -> None:
+    """Finalise gmsh; the next :func:`ensure_gmsh` initialises it afresh."""
+    _reset_gmsh(gmsh)
+
+
 def _reset_gmsh(gmsh) -> None:
     """A failed HXT run leaves gmsh 4.8 unable to mesh anything in the same session (every
     later model comes back empty): finalize and let the next call initialise afresh."""
@@ -405,10 +420,7 @@ def skin_surface(subject: Anthropometry, pose: Pose, *, digits: str | tuple[str,
     check_bones(skel)
     surf, error = None, None
     if comm.rank == 0:
-        global _GMSH_READY
-        if not _GMSH_READY:
-            gmsh.initialize(readConfigFiles=False)
-            _GMSH_READY = True
+        ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("hand_surface")
         try:
@@ -627,10 +639,7 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
     check_bones(skel)
     result, error = None, None
     if comm.rank == 0:
-        global _GMSH_READY
-        if not _GMSH_READY:  # gmsh 4.8 has no isInitialized(): initialise once per process
-            gmsh.initialize(readConfigFiles=False)
-            _GMSH_READY = True
+        ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("hand")
         try:
