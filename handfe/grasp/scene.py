@@ -4,12 +4,15 @@ Stages: posture (glove angles or a pose file) -> muscle forces (EMG) -> posed me
 participating digits -> object placed in the grasp cavity just short of contact -> FE tissue
 problem with rigid bones -> loading -> outputs.
 
-* ``loading = "angles"``: the released flexion joints of the participating digits close by
-  ``solver.closing_deg`` from the measured posture (bone motions as boundary conditions).
-* ``loading = "muscles"``: the released flexion joints are unknowns; Newton on the joint
-  angles balances, at each joint, muscle torque + ligament torque + the torque of the tissue
-  reactions on the bones distal to it (contact reaches the bones through the tissue). The
-  Jacobian of the tissue torque is the FE tangent condensed on the bone rotations.
+* ``loading = "angles"`` (default): each participating digit closes its released flexion
+  joints from the pre-closed posture until it presses with ``solver.digit_force_N`` (bone
+  motions as boundary conditions), then Uzawa updates remove the penetration.
+* ``loading = "muscles"`` (experimental, not converging yet): after that closing, the released
+  flexion joints are unknowns; the applied joint torque ramps from the one holding the closed
+  posture to the muscle torque, and Newton on the joint angles balances, at each joint, applied
+  + ligament torque + the torque of the tissue reactions on the bones distal to it (contact
+  reaches the bones through the tissue). The Jacobian of the tissue torque is the FE tangent
+  condensed on the bone rotations plus the lever part.
 """
 
 from __future__ import annotations
