@@ -240,3 +240,24 @@ def test_distributed_mesh_matches_gmsh_volumes(subject):
         assert v == pytest.approx(m.quality["volume_mm3"][name], rel=1e-6)
     n_cells = comm.allreduce(m.mesh.topology.index_map(3).size_local, op=MPI.SUM)
     assert n_cells == m.quality["cells"]
+
+
+def test_hand_meshing_leaves_no_gmsh_options_behind():
+    """gmsh options are global and outlive the model: the hand's Mesh.MeshSizeMax (a few mm)
+    once capped the next mesher's 40 mm elements (the Hertz block after the pinch test in the
+    CI's MPI phase: 289,836 cells instead of 2,784)."""
+    import gmsh
+
+    from handfe.anatomy.meshing import ensure_gmsh, release_gmsh, skin_surface
+    from handfe.grasp.mechanics import opened_pose
+    from handfe.kinematics import grasp_pose
+
+    sd = SUBJECTS_DIR / "S01"
+    digits = ("thumb", "index", "middle")
+    skin_surface(load_subject(sd), opened_pose(grasp_pose(sd, "precision"), digits, 5.0),
+                 digits=digits, level="coarse", comm=MPI.COMM_SELF)
+    ensure_gmsh(gmsh)
+    try:
+        assert gmsh.option.getNumber("Mesh.MeshSizeMax") == pytest.approx(1e22)
+    finally:
+        release_gmsh(gmsh)

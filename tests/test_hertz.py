@@ -54,8 +54,10 @@ def _quarter_block(comm):
     import gmsh
     from dolfinx.io import gmshio
 
+    from handfe.anatomy.meshing import ensure_gmsh, release_gmsh
+
     if comm.rank == 0:
-        gmsh.initialize()
+        ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("hertz")
         occ = gmsh.model.occ
@@ -82,7 +84,7 @@ def _quarter_block(comm):
         gmsh.model.mesh.generate(3)
     msh, _, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     if comm.rank == 0:
-        gmsh.finalize()
+        release_gmsh(gmsh)
     return msh, ft
 
 

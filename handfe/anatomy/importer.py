@@ -163,12 +163,12 @@ def import_hand(skin_path: str | Path, bones_dir: str | Path, *, skin_thickness_
     meshing.idle_wait(comm)
     error = comm.bcast(error, root=0)
     if error:
-        if comm.rank == 0 and meshing._GMSH_READY:
-            gmsh.model.remove()
+        if comm.rank == 0:
+            meshing.release_gmsh(gmsh)
         raise InputError(error)
     msh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     if comm.rank == 0:
-        gmsh.model.remove()
+        meshing.release_gmsh(gmsh)
     info = comm.bcast({k: v for k, v in result.items() if k != "kd"} if result else None, 0)
     bone_pts, bone_lab = comm.bcast((result["bone_pts"], result["bone_lab"]) if result
                                     else None, 0)

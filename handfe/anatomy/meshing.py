@@ -438,10 +438,7 @@ def skin_surface(subject: Anthropometry, pose: Pose, *, digits: str | tuple[str,
             error = str(exc)
         except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
             error = f"surface meshing failed for pose {pose.source}: {exc}"
-        if error:
-            _reset_gmsh(gmsh)
-        else:
-            gmsh.model.remove()
+        release_gmsh(gmsh)  # options are global: leave nothing behind for the next mesher
     idle_wait(comm)
     error = comm.bcast(error, root=0)
     if error:
@@ -656,7 +653,9 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
         raise InputError(error)
     msh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     if comm.rank == 0:
-        gmsh.model.remove()
+        # finalise: gmsh options are global and survive gmsh.model.remove(); a later mesher in
+        # this process (the Hertz test's block) must not inherit the hand's size settings
+        release_gmsh(gmsh)
     quality = comm.bcast(result["quality"] if result else None, root=0)
     # cells: nail = skin cells inside the nail boxes
     tdim = msh.topology.dim
