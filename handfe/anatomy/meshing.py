@@ -374,13 +374,11 @@ def ensure_gmsh(gmsh) -> None:
 
 
 def release_gmsh(gmsh) -> None:
-    """Finalise gmsh; the next :func:`ensure_gmsh` initialises it afresh."""
-    _reset_gmsh(gmsh)
-
-
-def _reset_gmsh(gmsh) -> None:
-    """A failed HXT run leaves gmsh 4.8 unable to mesh anything in the same session (every
-    later model comes back empty): finalize and let the next call initialise afresh."""
+    """Finalise gmsh; the next :func:`ensure_gmsh` initialises it afresh. Every mesher calls it
+    when done: gmsh options are global and outlive ``gmsh.model.remove()`` (the hand's
+    ``Mesh.MeshSizeMax`` once capped a later mesh's elements), and a failed HXT run leaves
+    gmsh 4.8 unable to mesh anything in the same session (every later model comes back
+    empty)."""
     global _GMSH_READY
     try:
         gmsh.finalize()
@@ -438,7 +436,7 @@ def skin_surface(subject: Anthropometry, pose: Pose, *, digits: str | tuple[str,
             error = str(exc)
         except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
             error = f"surface meshing failed for pose {pose.source}: {exc}"
-        release_gmsh(gmsh)  # options are global: leave nothing behind for the next mesher
+        release_gmsh(gmsh)
     idle_wait(comm)
     error = comm.bcast(error, root=0)
     if error:
@@ -649,12 +647,10 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
     error = comm.bcast(error, root=0)
     if error:
         if comm.rank == 0:
-            _reset_gmsh(gmsh)
+            release_gmsh(gmsh)
         raise InputError(error)
     msh, ct, ft = gmshio.model_to_mesh(gmsh.model, comm, 0, gdim=3)
     if comm.rank == 0:
-        # finalise: gmsh options are global and survive gmsh.model.remove(); a later mesher in
-        # this process (the Hertz test's block) must not inherit the hand's size settings
         release_gmsh(gmsh)
     quality = comm.bcast(result["quality"] if result else None, root=0)
     # cells: nail = skin cells inside the nail boxes

@@ -262,7 +262,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                                    reach=reach)
             except ConfigError as exc:
                 err = str(exc)
-            except Exception as exc:  # noqa: BLE001 - rank 0 only: report, never hang rank 1
+            except Exception as exc:  # rank 0 only: report, never hang rank 1
                 err = f"object placement failed on rank 0: {type(exc).__name__}: {exc}"
         err = comm.bcast(err, root=0)
         if err:
@@ -335,7 +335,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         if comm.rank == 0:
             try:
                 gaps_start = start_gaps(obstacle, shift, model.surface)
-            except Exception as exc:  # noqa: BLE001 - rank 0 only: report, never hang rank 1
+            except Exception as exc:  # rank 0 only: report, never hang rank 1
                 gaps_start = f"starting gaps failed on rank 0: {type(exc).__name__}: {exc}"
         gaps_start = comm.bcast(gaps_start, root=0)
         if isinstance(gaps_start, str):
