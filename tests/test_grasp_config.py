@@ -22,7 +22,7 @@ from handfe.grasp.mechanics import (
     pre_close,
     released_joints,
 )
-from handfe.grasp.scene import secant_closing_increment
+from handfe.grasp.scene import DigitStepLimiter, damped_newton_step, secant_closing_increment
 from handfe.kinematics import Pose
 from handfe.paths import REPO_ROOT
 
@@ -84,6 +84,48 @@ def test_secant_closing_increment():
     assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5) == 0.5
     assert secant_closing_increment((0.5, f(0.5)), 1.0, 4.6, 5.0, 0.2, 0.5) == \
         pytest.approx(0.01)
+
+
+def test_torque_step_is_limited_digit_by_digit():
+    # the index's large step (a soft direction) is scaled to the cap as a whole (direction
+    # kept); the thumb's small step is left alone instead of shrinking with the index's
+    limit = DigitStepLimiter(["thumb", "thumb", "index", "index", "index"], 0.1)
+    d = np.array([0.01, -0.02, 0.2, -0.4, 0.8])
+    out = limit(d)
+    assert out[:2] == pytest.approx(d[:2])
+    assert out[2:] == pytest.approx(d[2:] / 8.0)
+    assert np.abs(out).max() == pytest.approx(0.1)
+    # the index overshoots and turns back: its radius halves (twice in a row: a quarter);
+    # the thumb, still going the same way, keeps the full radius
+    out = limit(np.array([0.5, 0.0, -0.2, 0.4, -0.8]))
+    assert out[0] == pytest.approx(0.1) and np.abs(out[2:]).max() == pytest.approx(0.05)
+    out = limit(np.array([0.5, 0.0, 0.2, -0.4, 0.8]))
+    assert np.abs(out[2:]).max() == pytest.approx(0.025) and out[0] == pytest.approx(0.1)
+    # capped and going on the same way: the radius grows back (never above the start)
+    assert np.abs(limit(np.array([0.5, 0.0, 0.2, -0.4, 0.8]))[2:]).max() == pytest.approx(0.05)
+    for _ in range(4):
+        out = limit(np.array([0.5, 0.0, 0.2, -0.4, 0.8]))
+    assert np.abs(out[2:]).max() == pytest.approx(0.1)
+
+
+def test_damped_newton_step_keeps_the_stiff_direction():
+    # a digit with a stiff (1000 N mm/rad) and a soft (1 N mm/rad) direction: Newton's step
+    # is 0.1 rad along the stiff one, 10 rad along the soft; within a 0.5 rad radius the damped
+    # step reaches the radius and keeps > 95 % of the stiff part (Newton's scaled: ~5 %)
+    R = np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    K = R @ np.diag([1000.0, 1.0]) @ R.T
+    g = R @ np.array([100.0, 10.0])
+    K4, g4 = np.zeros((4, 4)), np.zeros(4)
+    K4[:2, :2], g4[:2] = K, g
+    K4[2:, 2:], g4[2:] = np.eye(2) * 50.0, [1.0, -2.0]   # a second digit, inside its radius
+    d = damped_newton_step(K4, g4, ["index", "index", "thumb", "thumb"],
+                           {"index": 0.5, "thumb": 0.5})
+    stiff, soft = R.T @ d[:2]
+    assert np.abs(d[:2]).max() == pytest.approx(0.5, rel=1e-6)
+    assert 0.095 < stiff < 0.1 and 0.0 < soft < 10.0
+    newton = R @ [0.1, 10.0]
+    assert (R.T @ (newton * 0.5 / np.abs(newton).max()))[0] < 0.006
+    assert d[2:] == pytest.approx([0.02, -0.04])   # undamped: Newton's
 
 
 def test_missing_subject_and_grasp(tmp_path):

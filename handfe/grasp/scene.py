@@ -413,6 +413,93 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         raise
 
 
+class DigitStepLimiter:
+    """Trust radius (rad) per digit for the torque Newton on the joint angles.
+
+    No joint moves more than its digit's radius per iteration: a joint with little to push
+    against has a tiny tangent and would otherwise take a huge step. Each digit's part of the
+    step is scaled as a whole (clipping joint by joint turns the coupled Newton direction
+    within a chain), digits separately: they meet only through the palm's tissue, and one
+    digit's soft direction must not shrink another digit's step to nothing. A digit whose
+    new step points back against its last one (it overshot along a soft direction, e.g. a
+    finger reconfiguring about its stuck pad) has its radius halved, down to ``min_fraction``
+    of the start; one that was capped and keeps going the same way gets it doubled back, up
+    to the start value."""
+
+    def __init__(self, digits: list[str], max_rad: float, min_fraction: float = 1.0 / 32):
+        self.names = np.array(digits)
+        self.max_rad = max_rad
+        self.min_rad = max_rad * min_fraction
+        self.radius = {g: max_rad for g in dict.fromkeys(digits)}
+        self.prev: dict[str, tuple[np.ndarray, bool]] = {}
+
+    def update(self, d_new: np.ndarray) -> dict[str, float]:
+        """Adapt the radii to the direction of the new step (rad, per joint); returns them."""
+        for g, r in self.radius.items():
+            if g in self.prev:
+                p, capped = self.prev[g]
+                dot = float(d_new[self.names == g] @ p)
+                if dot < 0.0:
+                    r = max(0.5 * r, self.min_rad)
+                elif capped and dot > 0.0:
+                    r = min(2.0 * r, self.max_rad)
+                self.radius[g] = r
+        return dict(self.radius)
+
+    def accept(self, d: np.ndarray, d_newton: np.ndarray) -> np.ndarray:
+        """Scale each digit's part of ``d`` into its radius and remember it."""
+        d = np.array(d, dtype=float)
+        for g, r in self.radius.items():
+            m = self.names == g
+            big = float(np.abs(d[m]).max(initial=0.0))
+            if big > r:
+                d[m] *= r / big
+            self.prev[g] = (d[m].copy(), float(np.abs(d_newton[m]).max(initial=0.0)) > r)
+        return d
+
+    def __call__(self, d_newton: np.ndarray) -> np.ndarray:
+        self.update(d_newton)
+        return self.accept(d_newton, d_newton)
+
+
+def damped_newton_step(K: np.ndarray, g: np.ndarray, groups: list[str],
+                       radius: dict[str, float]) -> np.ndarray:
+    """Solve (K + Lambda) d = g with Lambda = diag(lambda per group) >= 0, the smallest damping
+    for which each group's own block gives max|d| <= its radius (a Levenberg-Marquardt /
+    trust-region step; K = stiffness = -d(residual)/d(angle), N mm/rad).
+
+    Along a soft direction (a stiffness much below lambda) the step shrinks to ~g/lambda, while
+    along the stiff ones (pressing the pad into the object) it stays Newton's: scaling the
+    plain Newton step instead, the soft direction's huge component would leave the stiff
+    directions no progress at all."""
+    names = np.array(groups)
+    lam = np.zeros(len(g))
+    for grp in dict.fromkeys(groups):
+        m = names == grp
+        Kg, gg, r = K[np.ix_(m, m)], g[m], radius[grp]
+        n = int(m.sum())
+
+        def size(x: float, Kg=Kg, gg=gg, n=n) -> float:
+            try:
+                return float(np.abs(np.linalg.solve(Kg + x * np.eye(n), gg)).max(initial=0.0))
+            except np.linalg.LinAlgError:
+                return float("inf")
+
+        if size(0.0) <= r:
+            continue
+        lo, hi = 0.0, float(np.linalg.norm(Kg, 2) + np.sqrt(n) * np.abs(gg).max() / r)
+        while size(hi) > r:
+            hi *= 2.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (lo, mid) if size(mid) <= r else (mid, hi)
+        lam[m] = hi
+    try:
+        return np.linalg.solve(K + np.diag(lam), g)
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(K + np.diag(lam), g, rcond=None)[0]
+
+
 def secant_closing_increment(last: tuple[float, float] | None, closed_deg: float,
                              force_N: float, target_N: float, rtol: float,
                              max_step_deg: float) -> float:
@@ -1009,7 +1096,7 @@ class GraspFE:
         from handfe.grasp.fe import condensed_torque_jacobian
 
         s = self.wf.solver
-        max_rad = math.radians(s.max_step_deg)
+        limit = DigitStepLimiter([j.digit for j in self.joints], math.radians(s.max_step_deg))
         rel = float("inf")
         B = self._coupling_matrix()
         for it in range(1, s.max_outer + 1):
@@ -1050,14 +1137,17 @@ class GraspFE:
                 dq[fq] = np.linalg.solve(Jf, -gq[fq])
             except np.linalg.LinAlgError:
                 dq[fq] = np.linalg.lstsq(Jf, -gq[fq], rcond=None)[0]
-            d = B @ dq
-            # no joint moves more than max_step_deg per iteration (a joint with little to push
-            # against has a tiny tangent and would otherwise take huge steps); the step is
-            # scaled as a whole: clipping joint by joint turns the coupled Newton direction
-            big = float(np.abs(d).max(initial=0.0))
-            if big > max_rad:
-                d *= max_rad / big
-            self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d)))
+            dn = B @ dq
+            # each digit moves at most its radius, damped along its soft directions only; the
+            # radii adapt to the damped step's direction (a reversal = an overshoot)
+            qdig = [self.joints[int(np.flatnonzero(B[:, k])[0])].digit
+                    for k in np.flatnonzero(fq)]
+            dq[fq] = damped_newton_step(-Jf, gq[fq], qdig, limit.radius)
+            dq[fq] = damped_newton_step(-Jf, gq[fq], qdig, limit.update(B @ dq))
+            d = limit.accept(B @ dq, dn)
+            raw = float(np.degrees(np.abs(dn).max(initial=0.0)))
+            self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d))
+                     + f" (Newton's largest {raw:.2f})")
             try:
                 self._go_to(self.kin.clamp(self.theta + np.degrees(d)),
                             label=f"{label}, torque iteration {it}", max_cuts=3)
