@@ -76,10 +76,10 @@ class SolverSpec:
     # the muscle torque in this many load steps (halved on failure)
     muscle_steps: int = field(default=4, metadata=bounds(1, 64))
     # muscles mode: each finger's DIP flexes by dip_pip_coupling x its PIP's change (the
-    # extensor mechanism / oblique retinacular ligament; 2/3 after Rijpkema & Girard 1991);
-    # 0 = DIP free. Without it a finger whose pad sticks can curl (MCP+, PIP-, DIP+) with the
-    # pad in place, and nothing in the model resists that (docs/grasp.md)
-    dip_pip_coupling: float = field(default=0.0, metadata=bounds(0.0, 1.5))
+    # extensor mechanism / oblique retinacular ligament; 2/3 after Rijpkema & Girard 1991,
+    # the default); 0 = DIP free: a finger whose pad sticks then curls (MCP+, PIP-, DIP+)
+    # with the pad in place, resisted by nothing in the model (docs/grasp.md)
+    dip_pip_coupling: float = field(default=2.0 / 3.0, metadata=bounds(0.0, 1.5))
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

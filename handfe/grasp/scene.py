@@ -421,16 +421,20 @@ class DigitStepLimiter:
     step is scaled as a whole (clipping joint by joint turns the coupled Newton direction
     within a chain), digits separately: they meet only through the palm's tissue, and one
     digit's soft direction must not shrink another digit's step to nothing. A digit whose
-    new step points back against its last one (it overshot along a soft direction, e.g. a
-    finger reconfiguring about its stuck pad) has its radius halved, down to ``min_fraction``
-    of the start; one that was capped and keeps going the same way gets it doubled back, up
-    to the start value."""
+    new step points back against its last one (it overshot: along a soft direction, e.g. a
+    finger reconfiguring about its stuck pad, or against a pad that stiffens faster than the
+    tangent says) gets half its last step as radius (bisection-like), down to
+    ``min_fraction`` x ``max_rad``; one that was capped and keeps going the same way gets its
+    radius doubled, up to ``max_rad``. The radius starts at ``start_fraction`` x ``max_rad``: a
+    pad pressed into the object stiffens faster than the tangent predicts, and a first full
+    step there failed the FE solve through four cuts (~4 min on the coarse pinch)."""
 
-    def __init__(self, digits: list[str], max_rad: float, min_fraction: float = 1.0 / 32):
+    def __init__(self, digits: list[str], max_rad: float, min_fraction: float = 1e-4,
+                 start_fraction: float = 1.0):
         self.names = np.array(digits)
         self.max_rad = max_rad
         self.min_rad = max_rad * min_fraction
-        self.radius = {g: max_rad for g in dict.fromkeys(digits)}
+        self.radius = {g: max_rad * start_fraction for g in dict.fromkeys(digits)}
         self.prev: dict[str, tuple[np.ndarray, bool]] = {}
 
     def update(self, d_new: np.ndarray) -> dict[str, float]:
@@ -440,7 +444,7 @@ class DigitStepLimiter:
                 p, capped = self.prev[g]
                 dot = float(d_new[self.names == g] @ p)
                 if dot < 0.0:
-                    r = max(0.5 * r, self.min_rad)
+                    r = max(0.5 * min(r, float(np.abs(p).max(initial=0.0))), self.min_rad)
                 elif capped and dot > 0.0:
                     r = min(2.0 * r, self.max_rad)
                 self.radius[g] = r
@@ -460,6 +464,27 @@ class DigitStepLimiter:
     def __call__(self, d_newton: np.ndarray) -> np.ndarray:
         self.update(d_newton)
         return self.accept(d_newton, d_newton)
+
+
+def response_ratios(predicted: np.ndarray, actual: np.ndarray, groups: list[str],
+                    previous: dict[str, float], lo: float = 0.05) -> dict[str, float]:
+    """Per group: the part of the predicted residual change (tangent x step) that the model
+    delivered, <actual, predicted> / |predicted|^2, clipped to [``lo``, 1]; a group whose
+    predicted change is negligible (< 1e-9 of the largest) keeps its ``previous`` ratio."""
+    names = np.array(groups)
+    scale = float(np.abs(predicted).max(initial=0.0))
+    out = {}
+    for g in dict.fromkeys(groups):
+        m = names == g
+        pp = float(predicted[m] @ predicted[m])
+        if pp <= (1e-9 * scale) ** 2 or scale == 0.0:
+            out[g] = previous.get(g, 1.0)
+            continue
+        out[g] = float(np.clip(float(actual[m] @ predicted[m]) / pp, lo, 1.0))
+    return out
+
+
+STALL_WINDOW = 8  # torque Newton iterations without a 10 % drop of the residual = a stall
 
 
 def damped_newton_step(K: np.ndarray, g: np.ndarray, groups: list[str],
@@ -1096,9 +1121,14 @@ class GraspFE:
         from handfe.grasp.fe import condensed_torque_jacobian
 
         s = self.wf.solver
-        limit = DigitStepLimiter([j.digit for j in self.joints], math.radians(s.max_step_deg))
+        limit = DigitStepLimiter([j.digit for j in self.joints], math.radians(s.max_step_deg),
+                                 start_fraction=0.25)
         rel = float("inf")
+        hist: list[float] = []
         B = self._coupling_matrix()
+        qgroups = [self.joints[int(np.flatnonzero(B[:, k])[0])].digit for k in range(B.shape[1])]
+        rho = {g: 1.0 for g in qgroups}
+        last = None  # (g, predicted change of g) of the last step, joint space
         for it in range(1, s.max_outer + 1):
             self.outer_iterations += 1
             tq = self.torques()
@@ -1115,6 +1145,13 @@ class GraspFE:
             if rel <= rtol:
                 self.torque = tq
                 return True, ""
+            if last is not None:
+                rho.update(response_ratios(B.T @ last[1], B.T @ (g - last[0]), qgroups, rho))
+            hist.append(rel)
+            if len(hist) > STALL_WINDOW and min(hist[-STALL_WINDOW:]) > 0.9 * hist[
+                    -STALL_WINDOW - 1]:
+                return False, (f"torque residual stalled at {rel:.3g} ({self.joints[k].name}) "
+                               f"for {STALL_WINDOW} iterations; {self._friction_use()}")
             skel = self.kin.skeleton(self.theta)
             ac, dsets = self._joint_geometry(skel)
             Jt = condensed_torque_jacobian(self.solver, self.bc, ac, dsets, self.problem.comm)
@@ -1140,20 +1177,38 @@ class GraspFE:
             dn = B @ dq
             # each digit moves at most its radius, damped along its soft directions only; the
             # radii adapt to the damped step's direction (a reversal = an overshoot)
-            qdig = [self.joints[int(np.flatnonzero(B[:, k])[0])].digit
-                    for k in np.flatnonzero(fq)]
-            dq[fq] = damped_newton_step(-Jf, gq[fq], qdig, limit.radius)
-            dq[fq] = damped_newton_step(-Jf, gq[fq], qdig, limit.update(B @ dq))
+            # a digit that answered its last step with rho x the predicted torque change is
+            # solved with rho x its tangent (slipping pad nodes give less than their stick
+            # springs promise: Newton then crawled at ~6 % per iteration on the pinch's thumb)
+            qdig = [qgroups[k] for k in np.flatnonzero(fq)]
+            Kf = -np.array([rho[q] for q in qdig])[:, None] * Jf
+            dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.radius)
+            dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.update(B @ dq))
             d = limit.accept(B @ dq, dn)
+            last = (g, (Jt + Jl) @ d)
             raw = float(np.degrees(np.abs(dn).max(initial=0.0)))
+            soft = ", ".join(f"{g} x{r:.2f}" for g, r in rho.items() if r < 0.99)
             self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d))
-                     + f" (Newton's largest {raw:.2f})")
+                     + f" (Newton's largest {raw:.2f}" + (f"; tangent {soft})" if soft else ")"))
             try:
                 self._go_to(self.kin.clamp(self.theta + np.degrees(d)),
                             label=f"{label}, torque iteration {it}", max_cuts=3)
             except SolverError as exc:
                 return False, str(exc)
         return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
+
+    def _friction_use(self) -> str:
+        """Each participating digit's tangential / normal contact force against the friction
+        coefficient: a digit at mu slides (at constant torque), and its torques cannot balance."""
+        reg, _ = self.metrics()
+        mu = self.grasp.friction
+        parts = []
+        for d in self.grasp.digits:
+            fn, ft = reg[d]["normal_force_N"], reg[d]["tangential_force_N"]
+            ratio = ft / fn if fn > 0 else float("nan")
+            parts.append(f"{d} {fn:.2f} N, tangential/normal {ratio:.2f}"
+                         + (" (sliding)" if ratio >= 0.98 * mu else ""))
+        return f"contact forces (mu = {mu:g}): " + ", ".join(parts)
 
     # -- outputs
     def _fields(self):
