@@ -14,12 +14,13 @@ subcutaneous tissue are Ogden N=3 (near-incompressible, P1 displacement + DG0 pr
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:
-  muscles  EXPERIMENTAL, does not converge yet (docs/grasp.md): after the angles-mode closing,
+  muscles  EXPERIMENTAL, does not reach the full EMG load yet (on the pinch the thumb slides on
+           the fixed ball from ~40 % of it; docs/grasp.md): after the angles-mode closing,
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
            and the released flexion angles are solved so that muscle + ligament +
            tissue/contact torques balance at every joint (relative residual <= 1e-3);
-           solver.dip_pip_coupling ties each DIP to its PIP
+           solver.dip_pip_coupling (default 2/3) ties each DIP to its PIP
   angles   (default) each participating digit closes from the pre-closed posture until it
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
            bring the penetration to <= 0.01 mm

@@ -1175,26 +1175,28 @@ class GraspFE:
             except np.linalg.LinAlgError:
                 dq[fq] = np.linalg.lstsq(Jf, -gq[fq], rcond=None)[0]
             dn = B @ dq
-            # each digit moves at most its radius, damped along its soft directions only; the
-            # radii adapt to the damped step's direction (a reversal = an overshoot)
             # a digit that answered its last step with rho x the predicted torque change is
             # solved with rho x its tangent (slipping pad nodes give less than their stick
-            # springs promise: Newton then crawled at ~6 % per iteration on the pinch's thumb)
+            # springs promise: Newton then crawled at ~6 % per iteration on the pinch's thumb);
+            # each digit moves at most its radius, damped along its soft directions only, and
+            # the radii adapt to the damped step's direction (a reversal = an overshoot)
             qdig = [qgroups[k] for k in np.flatnonzero(fq)]
             Kf = -np.array([rho[q] for q in qdig])[:, None] * Jf
             dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.radius)
             dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.update(B @ dq))
             d = limit.accept(B @ dq, dn)
-            last = (g, (Jt + Jl) @ d)
             raw = float(np.degrees(np.abs(dn).max(initial=0.0)))
-            soft = ", ".join(f"{g} x{r:.2f}" for g, r in rho.items() if r < 0.99)
+            soft = ", ".join(f"{dg} x{r:.2f}" for dg, r in rho.items() if r < 0.99)
             self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d))
                      + f" (Newton's largest {raw:.2f}" + (f"; tangent {soft})" if soft else ")"))
+            before = self.theta.copy()
             try:
                 self._go_to(self.kin.clamp(self.theta + np.degrees(d)),
                             label=f"{label}, torque iteration {it}", max_cuts=3)
             except SolverError as exc:
                 return False, str(exc)
+            # the step taken (joint limits may have clamped it) and the change it predicted
+            last = (g, (Jt + Jl) @ np.radians(self.theta - before))
         return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
 
     def _friction_use(self) -> str:
@@ -1206,8 +1208,9 @@ class GraspFE:
         for d in self.grasp.digits:
             fn, ft = reg[d]["normal_force_N"], reg[d]["tangential_force_N"]
             ratio = ft / fn if fn > 0 else float("nan")
+            # the patch's ratio stays a little below mu while its rim still sticks
             parts.append(f"{d} {fn:.2f} N, tangential/normal {ratio:.2f}"
-                         + (" (sliding)" if ratio >= 0.98 * mu else ""))
+                         + (" (at the friction limit)" if ratio >= 0.9 * mu else ""))
         return f"contact forces (mu = {mu:g}): " + ", ".join(parts)
 
     # -- outputs
