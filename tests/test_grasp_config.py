@@ -520,6 +520,35 @@ def test_muscles_mode_converges_when_the_tissue_gives_less_than_its_tangent(monk
     assert any("tangent index x0.1" in m for m in fake.log)
 
 
+def test_muscles_mode_failure_keeps_the_last_balanced_load(monkeypatch):
+    # the FE solve fails beyond 20 deg of PIP flexion (as when a pad rolls off the object):
+    # the homotopy halves its step until it gives up, and the state it leaves is the last
+    # balanced load's, with the torque applied there (what run_workflow writes as partial)
+    import handfe.grasp.fe as fe
+    from handfe.errors import SolverError
+    from handfe.grasp.scene import GraspFE
+
+    class Failing(_FakeMuscles):
+        def _go_to(self, theta, *, label, max_cuts=6):
+            if theta[0] > 20.0:
+                raise SolverError(f"{label}: Newton failed", load_step=1)
+            super()._go_to(theta, label=label)
+
+        def _friction_use(self):
+            return "contact forces: -"
+
+    fake = Failing([900.0, 400.0])
+    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
+        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    with pytest.raises(SolverError, match="muscle load"):
+        GraspFE.solve_muscles(fake)
+    assert 0.0 < fake.muscle_load < 1.0 and fake.theta[0] <= 20.0
+    tq = fake.torque
+    assert np.all(tq["relative"] <= 10 * fake.wf.solver.torque_rtol)  # balanced there
+    assert np.all(tq["muscle"] < [900.0, 400.0])                      # at part of the load
+    assert np.array_equal(fake.tau_muscle, [900.0, 400.0])
+
+
 def test_response_ratios():
     from handfe.grasp.scene import response_ratios
 

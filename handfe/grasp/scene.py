@@ -173,7 +173,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     ``muscle_scale`` multiplies muscle forces (e.g. {"FDS": 1.1})."""
     from handfe.anatomy import build_hand, load_subject
     from handfe.emg import muscle_forces
-    from handfe.io import write_csv, write_json
+    from handfe.io import write_json
     from handfe.parallel import rprint
 
     t_start = time.perf_counter()
@@ -211,6 +211,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
             write_json(out / "summary.json", summary)
 
     stage = "setup"
+    scene = None
     try:
         # -- posture and muscle forces
         t0 = time.perf_counter()
@@ -370,33 +371,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         # -- outputs
         stage = "outputs"
         t0 = time.perf_counter()
-        regs, fd = scene.metrics()
-        summary.update(scene.report())
-        total_f = np.sum([regs[r]["force_vector_N"] for r in (
-            "thumb", "index", "middle", "ring", "little", "palm")], axis=0)
-        # net force on the object (|sum|; ~0 for a balanced pinch) and the grip force = sum of
-        # the regions' contact force magnitudes
-        summary["net_object_force_N"] = float(np.linalg.norm(total_f))
-        summary["grip_force_N"] = float(sum(regs[r]["normal_force_N"] for r in (
-            "thumb", "index", "middle", "ring", "little", "palm")))
-        summary["contact_force_vector_N"] = total_f.tolist()
-        tips = {d: {"mean_pressure_kPa": regs[f"{d}_distal"]["mean_pressure_kPa"],
-                    "peak_pressure_kPa": regs[f"{d}_distal"]["peak_pressure_kPa"],
-                    "contact_area_mm2": regs[f"{d}_distal"]["contact_area_mm2"]}
-                for d in ("thumb", "index", "middle", "ring", "little")}
-        if out is not None:
-            rows = [{"region": k, **{m: v[m] for m in (
-                "contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
-                "tangential_force_N")}} for k, v in regs.items()]
-            if comm.rank == 0:
-                write_csv(out / "regions.csv", rows)
-                write_csv(out / "fingertips.csv", [{"digit": d, **v} for d, v in tips.items()])
-            if wf.outputs.png:
-                from handfe.grasp.outputs import pressure_map_png
-                pressure_map_png(fd, H.R, out / "pressure.png", comm,
-                                 title=f"{grasp.name} grasp ({mode}), contact pressure")
-            if wf.outputs.fields:
-                scene.write_fields(out / "fields.xdmf")
+        regs, tips = _write_outputs(scene, summary, out, wf, grasp, mode, H, comm)
         stages["outputs"] = time.perf_counter() - t0
         checkpoint("done")
         say(f"done in {summary['wall_s']:.1f} s: grip force {summary['grip_force_N']:.1f} N, "
@@ -405,12 +380,64 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     except (SolverError, InputError, ConfigError) as exc:
         summary["failed_stage"] = stage
         summary["error"] = str(exc)
+        part = getattr(scene, "muscle_load", 0.0) if stage.startswith("loading") and \
+            mode == "muscles" else 0.0
+        if isinstance(exc, SolverError) and part > 0.0:
+            # the muscles mode restores the last balanced muscle load before it gives up: its
+            # results are real equilibria (at part of the EMG torques), so they are written,
+            # marked partial (collective: every rank raised the same error)
+            summary["partial"] = {"muscle_load": part, "note": (
+                f"outputs of the last balanced load: applied torque = holding + {part:.3g} x "
+                "(muscle - holding), reported as muscle_Nmm; intermediate loads are balanced "
+                "to 10 x torque_rtol (max_relative_torque_residual), before the final Uzawa "
+                "phase (max_penetration_mm)")}
+            say(f"writing the partial results at muscle load {part:.3g}")
+            try:
+                _write_outputs(scene, summary, out, wf, grasp, mode, H, comm)
+            except Exception as exc2:  # keep the original error; say why there is no partial
+                summary["partial"]["error"] = f"{type(exc2).__name__}: {exc2}"
         checkpoint("failed")
         if isinstance(exc, SolverError):
             raise SolverError(f"grasp {grasp.name}, stage {stage}: {exc}",
                               load_step=exc.load_step, load_factor=exc.load_factor,
                               residual=exc.residual) from None
         raise
+
+
+def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf: Workflow,
+                   grasp, mode: str, H, comm: MPI.Comm) -> tuple[dict, dict]:
+    """Metrics of the current state into ``summary``; regions.csv, fingertips.csv,
+    pressure.png and the fields into ``out`` (rank 0 writes; collective)."""
+    from handfe.io import write_csv
+
+    regs, fd = scene.metrics()
+    summary.update(scene.report())
+    total_f = np.sum([regs[r]["force_vector_N"] for r in (
+        "thumb", "index", "middle", "ring", "little", "palm")], axis=0)
+    # net force on the object (|sum|; ~0 for a balanced pinch) and the grip force = sum of
+    # the regions' contact force magnitudes
+    summary["net_object_force_N"] = float(np.linalg.norm(total_f))
+    summary["grip_force_N"] = float(sum(regs[r]["normal_force_N"] for r in (
+        "thumb", "index", "middle", "ring", "little", "palm")))
+    summary["contact_force_vector_N"] = total_f.tolist()
+    tips = {d: {"mean_pressure_kPa": regs[f"{d}_distal"]["mean_pressure_kPa"],
+                "peak_pressure_kPa": regs[f"{d}_distal"]["peak_pressure_kPa"],
+                "contact_area_mm2": regs[f"{d}_distal"]["contact_area_mm2"]}
+            for d in ("thumb", "index", "middle", "ring", "little")}
+    if out is not None:
+        rows = [{"region": k, **{m: v[m] for m in (
+            "contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
+            "tangential_force_N")}} for k, v in regs.items()]
+        if comm.rank == 0:
+            write_csv(out / "regions.csv", rows)
+            write_csv(out / "fingertips.csv", [{"digit": d, **v} for d, v in tips.items()])
+        if wf.outputs.png:
+            from handfe.grasp.outputs import pressure_map_png
+            pressure_map_png(fd, H.R, out / "pressure.png", comm,
+                             title=f"{grasp.name} grasp ({mode}), contact pressure")
+        if wf.outputs.fields:
+            scene.write_fields(out / "fields.xdmf")
+    return regs, tips
 
 
 class DigitStepLimiter:
@@ -1082,6 +1109,7 @@ class GraspFE:
             f"{j.name} {m:.0f} (holding {h:.0f})" for j, m, h in
             zip(self.joints, tau_m, tau_hold, strict=True)))
         done, ds = 0.0, 1.0 / s.muscle_steps
+        self.muscle_load = 0.0
         try:
             while done < 1.0 - 1e-12:
                 lam = min(1.0, done + ds)
@@ -1091,7 +1119,7 @@ class GraspFE:
                 ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
                                                 else s.torque_rtol, label=f"muscle load {lam:.3g}")
                 if ok:
-                    done = lam
+                    done = self.muscle_load = lam
                     continue
                 self._restore(snap)
                 ds *= 0.5
@@ -1109,6 +1137,13 @@ class GraspFE:
             if not ok:
                 raise SolverError(f"torque balance at full muscle load: {why}",
                                   load_step=len(self.steps) + 1, load_factor=1.0)
+        except SolverError:
+            if self.muscle_load > 0.0:
+                # the state is the last balanced load's (restored): its torques, with the
+                # torque applied there, are what a partial report shows
+                self.tau_muscle = tau_hold + self.muscle_load * (tau_m - tau_hold)
+                self.torque = self.torques()
+            raise
         finally:
             self.tau_muscle = tau_m
         self.digit_force_N = self.digit_forces()
