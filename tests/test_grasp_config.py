@@ -554,10 +554,12 @@ def test_response_ratios():
 
     pred = np.array([10.0, -20.0, 1e-14, 0.0])
     act = np.array([2.0, -4.0, 5.0, 1.0])
-    r = response_ratios(pred, act, ["a", "a", "b", "b"], {"b": 0.3})
+    r = response_ratios(pred, act, ["a", "a", "b", "b"], {"a": 0.4, "b": 0.3})
     assert r["a"] == pytest.approx(0.2) and r["b"] == 0.3   # b: nothing predicted, kept
     assert response_ratios(pred, 3 * pred, ["a", "a", "b", "b"], {})["a"] == 1.0  # clipped
-    assert response_ratios(pred, -pred, ["a", "a", "b", "b"], {})["a"] == 0.05
+    # at most halved per step, never below 0.05
+    assert response_ratios(pred, -pred, ["a", "a", "b", "b"], {})["a"] == 0.5
+    assert response_ratios(pred, -pred, ["a", "a", "b", "b"], {"a": 0.08})["a"] == 0.05
 
 
 def test_muscles_mode_more_flexor_force_never_lowers_the_contact_force(monkeypatch):

@@ -496,8 +496,10 @@ class DigitStepLimiter:
 def response_ratios(predicted: np.ndarray, actual: np.ndarray, groups: list[str],
                     previous: dict[str, float], lo: float = 0.05) -> dict[str, float]:
     """Per group: the part of the predicted residual change (tangent x step) that the model
-    delivered, <actual, predicted> / |predicted|^2, clipped to [``lo``, 1]; a group whose
-    predicted change is negligible (< 1e-9 of the largest) keeps its ``previous`` ratio."""
+    delivered, <actual, predicted> / |predicted|^2, clipped to [``lo``, 1] and to at least half
+    the ``previous`` ratio (one odd step - a pad that slipped once - must not make the next
+    step 20x Newton's: on the pinch that overshot and failed the FE solve); a group whose
+    predicted change is negligible (< 1e-9 of the largest) keeps its previous ratio."""
     names = np.array(groups)
     scale = float(np.abs(predicted).max(initial=0.0))
     out = {}
@@ -507,7 +509,8 @@ def response_ratios(predicted: np.ndarray, actual: np.ndarray, groups: list[str]
         if pp <= (1e-9 * scale) ** 2 or scale == 0.0:
             out[g] = previous.get(g, 1.0)
             continue
-        out[g] = float(np.clip(float(actual[m] @ predicted[m]) / pp, lo, 1.0))
+        floor = max(lo, 0.5 * previous.get(g, 1.0))
+        out[g] = float(np.clip(float(actual[m] @ predicted[m]) / pp, floor, 1.0))
     return out
 
 
