@@ -546,6 +546,7 @@ def test_muscles_mode_failure_keeps_the_last_balanced_load(monkeypatch):
     tq = fake.torque
     assert np.all(tq["relative"] <= 10 * fake.wf.solver.torque_rtol)  # balanced there
     assert np.all(tq["muscle"] < [900.0, 400.0])                      # at part of the load
+    assert fake.digit_force_N == fake.digit_forces()                   # of that state
     assert np.array_equal(fake.tau_muscle, [900.0, 400.0])
 
 

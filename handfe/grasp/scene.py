@@ -1146,6 +1146,7 @@ class GraspFE:
                 # torque applied there, are what a partial report shows
                 self.tau_muscle = tau_hold + self.muscle_load * (tau_m - tau_hold)
                 self.torque = self.torques()
+                self.digit_force_N = self.digit_forces()
             raise
         finally:
             self.tau_muscle = tau_m
