@@ -14,8 +14,9 @@ subcutaneous tissue are Ogden N=3 (near-incompressible, P1 displacement + DG0 pr
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:
-  muscles  EXPERIMENTAL, does not reach the full EMG load yet (on the pinch the thumb slides on
-           the fixed ball from ~40 % of it; docs/grasp.md): after the angles-mode closing,
+  muscles  EXPERIMENTAL, does not reach the full EMG load yet (on the pinch thumb and index
+           slide on the fixed ball from 40-60 % of it; a run that gives up writes the last
+           balanced load's results, marked partial; docs/grasp.md): after the angles-mode closing,
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
            and the released flexion angles are solved so that muscle + ligament +
