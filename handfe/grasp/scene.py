@@ -380,8 +380,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     except (SolverError, InputError, ConfigError) as exc:
         summary["failed_stage"] = stage
         summary["error"] = str(exc)
-        part = getattr(scene, "muscle_load", 0.0) if stage.startswith("loading") and \
-            mode == "muscles" else 0.0
+        # (only the muscles mode sets muscle_load; a failure in a later stage is not partial)
+        part = getattr(scene, "muscle_load", 0.0) if stage.startswith("loading") else 0.0
         if isinstance(exc, SolverError) and part > 0.0:
             # the muscles mode restores the last balanced muscle load before it gives up: its
             # results are real equilibria (at part of the EMG torques), so they are written,
@@ -408,22 +408,21 @@ def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf
                    grasp, mode: str, H, comm: MPI.Comm) -> tuple[dict, dict]:
     """Metrics of the current state into ``summary``; regions.csv, fingertips.csv,
     pressure.png and the fields into ``out`` (rank 0 writes; collective)."""
+    from handfe.anatomy.meshing import REGIONS
     from handfe.io import write_csv
 
     regs, fd = scene.metrics()
     summary.update(scene.report())
-    total_f = np.sum([regs[r]["force_vector_N"] for r in (
-        "thumb", "index", "middle", "ring", "little", "palm")], axis=0)
+    total_f = np.sum([regs[r]["force_vector_N"] for r in REGIONS], axis=0)
     # net force on the object (|sum|; ~0 for a balanced pinch) and the grip force = sum of
     # the regions' contact force magnitudes
     summary["net_object_force_N"] = float(np.linalg.norm(total_f))
-    summary["grip_force_N"] = float(sum(regs[r]["normal_force_N"] for r in (
-        "thumb", "index", "middle", "ring", "little", "palm")))
+    summary["grip_force_N"] = float(sum(regs[r]["normal_force_N"] for r in REGIONS))
     summary["contact_force_vector_N"] = total_f.tolist()
     tips = {d: {"mean_pressure_kPa": regs[f"{d}_distal"]["mean_pressure_kPa"],
                 "peak_pressure_kPa": regs[f"{d}_distal"]["peak_pressure_kPa"],
                 "contact_area_mm2": regs[f"{d}_distal"]["contact_area_mm2"]}
-            for d in ("thumb", "index", "middle", "ring", "little")}
+            for d in REGIONS if d != "palm"}
     if out is not None:
         rows = [{"region": k, **{m: v[m] for m in (
             "contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
@@ -488,10 +487,6 @@ class DigitStepLimiter:
             self.prev[g] = (d[m].copy(), float(np.abs(d_newton[m]).max(initial=0.0)) > r)
         return d
 
-    def __call__(self, d_newton: np.ndarray) -> np.ndarray:
-        self.update(d_newton)
-        return self.accept(d_newton, d_newton)
-
 
 def response_ratios(predicted: np.ndarray, actual: np.ndarray, groups: list[str],
                     previous: dict[str, float], lo: float = 0.05) -> dict[str, float]:
@@ -506,7 +501,7 @@ def response_ratios(predicted: np.ndarray, actual: np.ndarray, groups: list[str]
     for g in dict.fromkeys(groups):
         m = names == g
         pp = float(predicted[m] @ predicted[m])
-        if pp <= (1e-9 * scale) ** 2 or scale == 0.0:
+        if pp <= (1e-9 * scale) ** 2:
             out[g] = previous.get(g, 1.0)
             continue
         floor = max(lo, 0.5 * previous.get(g, 1.0))
