@@ -101,3 +101,99 @@ def test_condensed_torque_jacobian_matches_finite_differences():
     assert np.allclose(Jm, Jfd, rtol=0.0, atol=2e-4 * np.abs(Jfd).max()), (Jm, Jfd)
     # the joints resist their own rotation (negative diagonal: a restoring torque)
     assert Jm[0, 0] < 0.0 and Jm[1, 1] < 0.0
+
+
+@pytest.mark.mpi
+def test_condensed_tangent_of_the_object_translation_matches_finite_differences():
+    # the side face rests on a spring foundation that moves with an "object" translated by t
+    # (R depends on u - t there, as the contact does): the tangent with respect to t and the
+    # object force (sum of R) from condensed_tangent(translate=True) against central
+    # differences of full solves; the state response du/dt is the predictor of a move
+    from handfe.grasp.fe import condensed_tangent
+
+    comm = MPI.COMM_WORLD
+    msh = mesh.create_box(comm, [np.zeros(3), np.array([10.0, 6.0, 4.0])], [5, 3, 2],
+                          mesh.CellType.tetrahedron)
+    nc = msh.topology.index_map(3).size_local
+    ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), np.full(nc, SKIN, np.int32))
+    top_p = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 4.0) & (x[0] < 5))
+    top_d = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 4.0) & (x[0] > 5))
+    base = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 0.0))
+    side = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[0], 10.0))
+    f = np.concatenate([top_p, top_d, base, side]).astype(np.int32)
+    v = np.concatenate([np.full(len(top_p), 5), np.full(len(top_d), 6), np.full(len(base), 90),
+                        np.full(len(side), 7)]).astype(np.int32)
+    order = np.argsort(f)
+    ft = mesh.meshtags(msh, 2, f[order], v[order])
+    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={"bone_p": 5, "bone_d": 6})
+    skin = Ogden.skin(nu=0.49)
+    problem = GraspProblem(model, skin, skin, element="p1-p1s")
+    bc = BoneBC(problem, model, ["p", "d"])
+    ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
+    k = fem.Constant(msh, 1e-3)
+    t = fem.Constant(msh, np.array([0.5, -0.3, 0.2]))
+    u = ufl.split(problem.w)[0]
+    # a stiffening foundation (k (1 + |u - t|^2) (u - t)): a nonlinear "contact"
+    d = u - t
+    problem.add_residual(k * (1.0 + ufl.inner(d, d)) * ufl.inner(d, problem.vu) * ds(7))
+    solver = TwoFormNewton(problem, max_it=40)
+    theta = np.radians([3.0, -2.0])
+    motions, axes = _chain(theta)
+
+    def solve(tt) -> tuple[np.ndarray, np.ndarray]:
+        t.value = tt
+        ok, its, reason = solver.solve()
+        assert ok, reason
+        R = solver.full_residual()
+        r = R.getArray()
+        tq = torques_from(r, bc, axes, DISTAL, comm)
+        F = np.array(comm.allreduce(np.array([r[x].sum() for x in bc.all_comp_dofs]),
+                                    op=MPI.SUM))
+        R.destroy()
+        return tq, F
+
+    old = bc.ubc.x.array.copy()
+    bc.set(motions)
+    bc.predict(old)
+    t0 = t.value.copy()
+    solve(t0)
+    w0 = problem.w.x.array.copy()
+    T = condensed_tangent(solver, bc, axes, DISTAL, comm, translate=True)
+    Jtheta = condensed_torque_jacobian(solver, bc, axes, DISTAL, comm)
+    assert np.allclose(T.torque_theta, Jtheta)
+    h = 1e-3
+    tq_fd, F_fd = np.zeros((2, 3)), np.zeros((3, 3))
+    n = len(T.response_t[0])
+    for c in range(3):
+        e = np.zeros(3)
+        e[c] = h
+        tp, Fp = solve(t0 + e)
+        wp = problem.w.x.array[:n].copy()
+        problem.w.x.array[:] = w0
+        tm, Fm = solve(t0 - e)
+        wm = problem.w.x.array[:n].copy()
+        problem.w.x.array[:] = w0
+        tq_fd[:, c], F_fd[:, c] = (tp - tm) / (2 * h), (Fp - Fm) / (2 * h)
+        dw = (wp - wm) / (2 * h)
+        scale = comm.allreduce(float(np.abs(dw).max()), op=MPI.MAX)
+        err = comm.allreduce(float(np.abs(T.response_t[c] - dw).max()), op=MPI.MAX)
+        assert err <= 1e-3 * scale, (c, err, scale)
+    assert np.allclose(T.torque_t, tq_fd, rtol=0.0, atol=1e-3 * np.abs(tq_fd).max())
+    assert np.allclose(T.force_t, F_fd, rtol=0.0, atol=1e-3 * np.abs(F_fd).max())
+    # moving the object into the foundation's direction pulls the object back: F_xx < 0
+    assert T.force_t[0, 0] < 0.0
+    # the object force's theta derivative against differences of the joint angles
+    F_th = np.zeros((3, 2))
+    for i in range(2):
+        dth = np.zeros(2)
+        dth[i] = h
+        out = []
+        for sgn in (1.0, -1.0):
+            old = bc.ubc.x.array.copy()
+            bc.set(_chain(theta + sgn * dth)[0])
+            bc.predict(old)
+            out.append(solve(t0)[1])
+            problem.w.x.array[:] = w0
+            bc.set(motions)
+        F_th[:, i] = (out[0] - out[1]) / (2 * h)
+    assert np.allclose(T.force_theta, F_th, rtol=0.0, atol=1e-3 * np.abs(F_th).max())

@@ -11,6 +11,8 @@ node R is the force the bone exerts on the tissue.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 import ufl
 from dolfinx import fem
@@ -446,13 +448,42 @@ def torques_from(vec_arr: np.ndarray, bc: BoneBC, axes_centres, distal_sets, com
 
 def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets,
                               comm) -> np.ndarray:
+    """d(tissue torque_j)/d(theta_i) (N mm / rad) with the tissue in equilibrium
+    (:func:`condensed_tangent` without the object's translation)."""
+    return condensed_tangent(solver, bc, axes_centres, distal_sets, comm).torque_theta
+
+
+@dataclass
+class CondensedTangent:
+    """The FE tangent condensed onto the joint angles theta (rad) and the object's translation
+    t (mm), with the tissue in equilibrium. Torques in N mm, object force (the net force the
+    skin exerts on the object) in N. ``response_*``: the linear change of the state (owned
+    entries of the (u, p) vector) per unit theta_i / t_c, the tangent predictor of a step."""
+
+    torque_theta: np.ndarray                     # (joints, joints)
+    torque_t: np.ndarray | None = None           # (joints, 3)
+    force_theta: np.ndarray | None = None        # (3, joints)
+    force_t: np.ndarray | None = None            # (3, 3)
+    response_theta: list[np.ndarray] = field(default_factory=list)
+    response_t: list[np.ndarray] = field(default_factory=list)
+
+
+def condensed_tangent(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets, comm, *,
+                      translate: bool = False) -> CondensedTangent:
     """d(tissue torque_j)/d(theta_i) (N mm / rad) with the tissue in equilibrium: the bone
     nodes of the bones distal to joint i rotate about its axis (v = a_i x (x - c_i)), the free
     dofs follow (K_ff dz = -K_fb v, solved with the factorised Newton matrix), and the change of
     the bone reactions dR = K (v + dz) is turned into torques; plus the geometric part, the
     change of the levers at fixed reactions (:func:`_lever_jacobian`). Joints form chains:
     joint i is proximal to j when j's distal bones are a strict subset of i's, and then j's axis
-    and centre turn with theta_i."""
+    and centre turn with theta_i.
+
+    ``translate``: also the derivatives with respect to the object's translation t and those of
+    the object force F = sum of R over all nodes (the tissue's own forces sum to zero, so this
+    is the contact force on the object). R(u + c, t + c) = R(u, t) for a uniform shift c (the
+    tissue energy depends on grad u, the contact on x - t), so moving the object by dt is
+    moving every Dirichlet node by -dt: with w_c the response to a unit shift of all Dirichlet
+    nodes along e_c, du/dt_c = 1_c - w_c and dR/dt_c = -K w_c."""
     Jm = _lever_jacobian(solver, bc, axes_centres, distal_sets, comm)
     K = solver.full_matrix()
     A = solver.A
@@ -469,14 +500,12 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
     bcd = bc.bc_dofs_W
     n_owned = v.getLocalSize()
     bcd_own = bcd[bcd < n_owned]
-    for i, ((a, c), bones) in enumerate(zip(axes_centres, distal_sets, strict=True)):
-        v.set(0.0)
-        arr = v.getArray()
-        for b in bones:
-            if b not in bc.wdofs:
-                continue
-            wd, comp, x = bc.node_data(b)
-            arr[wd] = np.cross(a, x - c)[np.arange(len(wd)), comp]
+    out = CondensedTangent(Jm)
+    nj = len(axes_centres)
+
+    def respond(arr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Dirichlet values ``arr`` (owned, zero off the Dirichlet dofs) -> (state change
+        v + dz, torque change, object force change) of the equilibrium that follows them."""
         v.setArray(arr)
         K.mult(v, y)
         y.scale(-1.0)
@@ -489,10 +518,40 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
         z.setArray(za)
         z.axpy(1.0, v)
         K.mult(z, dR)
-        Jm[:, i] += torques_from(dR.getArray(), bc, axes_centres, distal_sets, comm)
+        r = dR.getArray()
+        f = np.array([r[d].sum() for d in bc.all_comp_dofs])
+        return (z.getArray().copy(), torques_from(r, bc, axes_centres, distal_sets, comm),
+                np.array(comm.allreduce(f, op=MPI.SUM)))
+
+    if translate:
+        out.force_theta = np.zeros((3, nj))
+    for i, ((a, c), bones) in enumerate(zip(axes_centres, distal_sets, strict=True)):
+        arr = np.zeros(n_owned)
+        for b in bones:
+            if b not in bc.wdofs:
+                continue
+            wd, comp, x = bc.node_data(b)
+            arr[wd] = np.cross(a, x - c)[np.arange(len(wd)), comp]
+        dz, dtq, df = respond(arr)
+        Jm[:, i] += dtq
+        if translate:
+            out.force_theta[:, i] = df
+            out.response_theta.append(dz)
+    if translate:
+        out.torque_t = np.zeros((nj, 3))
+        out.force_t = np.zeros((3, 3))
+        for cpt in range(3):
+            arr = np.zeros(n_owned)
+            arr[bc.bc_comp_dofs[cpt]] = 1.0
+            wc, dtq, df = respond(arr)
+            out.torque_t[:, cpt] = -dtq
+            out.force_t[:, cpt] = -df
+            one = np.zeros(n_owned)
+            one[bc.all_comp_dofs[cpt]] = 1.0
+            out.response_t.append(one - wc)
     for o in (K, v, y, z, dR, ksp):
         o.destroy()
-    return Jm
+    return out
 
 
 def _lever_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets,
@@ -529,9 +588,11 @@ def _lever_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets
     return np.array(comm.allreduce(J, op=MPI.SUM))
 
 
-def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm) -> dict:
+def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm, scale_N: float = 0.0) -> dict:
     """Force on the object (sum of the contact residual, N) against the support reactions
-    (sum of the full residual over bone and wrist nodes, N): equal at equilibrium."""
+    (sum of the full residual over bone and wrist nodes, N): equal at equilibrium. The error
+    is relative to the larger of |object force| and ``scale_N`` (a held object's net force is
+    ~0: pass the grip force)."""
     R = solver.full_residual()
     Rc = fem_petsc.assemble_vector(solver.L[1])
     Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
@@ -542,6 +603,6 @@ def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm) -> dict:
     obj = np.array(comm.allreduce(obj, op=MPI.SUM))
     R.destroy()
     Rc.destroy()
-    err = float(np.linalg.norm(sup - obj) / max(np.linalg.norm(obj), 1e-300))
+    err = float(np.linalg.norm(sup - obj) / max(np.linalg.norm(obj), scale_N, 1e-300))
     return {"object_force_N": obj.tolist(), "support_reaction_N": sup.tolist(),
             "equilibrium_relative_error": err}

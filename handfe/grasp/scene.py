@@ -510,6 +510,10 @@ def response_ratios(predicted: np.ndarray, actual: np.ndarray, groups: list[str]
 
 
 STALL_WINDOW = 8  # torque Newton iterations without a 10 % drop of the residual = a stall
+# mm: length that turns the object's translation into an angle-like unknown of the torque
+# Newton (t / L) and its force into a torque-like residual (F x L); the trust radius of the
+# object is then max_step_deg (rad) x L (3 deg: 0.52 mm)
+OBJECT_LENGTH_MM = 10.0
 
 
 def damped_newton_step(K: np.ndarray, g: np.ndarray, groups: list[str],
@@ -632,13 +636,25 @@ class GraspFE:
         self.stalled: dict[str, str] = {}  # angles mode: digits whose closing step failed
         self._dw: np.ndarray | None = None  # last accepted state increment (secant predictor)
         self._dbc = 0.0  # norm of the bone displacement increment of that step
+        # muscles mode: the object's translation is an unknown (solver.free_object)
+        self.object_free = wf.loading == "muscles" and s.free_object
+        self.translation0 = np.asarray(shift, dtype=float).copy()
+        self.force_target = np.zeros(3)  # N: net contact force the object must carry
+        self._t_response: list[np.ndarray] = []  # du/dt_c (tangent predictor of a translation)
 
     # -- one boundary-condition step with cutting
-    def _go_to(self, theta: np.ndarray, *, label: str, max_cuts: int = 6) -> None:
+    def _go_to(self, theta: np.ndarray, *, label: str, max_cuts: int = 6,
+               translation: np.ndarray | None = None) -> None:
+        """Move the bones to the joint angles ``theta`` (deg) and the object to ``translation``
+        (mm; default: where it is), in sub-steps cut on failure (each with the same fraction of
+        both); SolverError after ``max_cuts`` cuts, with the last converged state kept."""
         theta = self.kin.clamp(theta)
         skel = self.kin.skeleton(theta)
         target = self.kin.motions(skel)
         prev = self.motions
+        t_prev = np.array(self.contact.translation.value, dtype=float)
+        t_target = t_prev if translation is None else np.asarray(translation, dtype=float)
+        t_conv = t_prev.copy()
         w0 = self.problem.w.x.array.copy()  # last converged state (with ghosts)
         # start from the sub-step size that worked last time (no 25 wasted iterations on a
         # full step that failed just before); it grows again after easy solves
@@ -648,9 +664,19 @@ class GraspFE:
         while done_frac < 1.0 - 1e-12:
             frac = min(1.0, done_frac + blend)
             self.bc.set(target, frac, prev)
+            t_new = t_prev + frac * (t_target - t_prev)
+            self.contact.translation.value = t_new
             dbc = self._norm(self.bc.ubc.x.array - bc_conv)
             w = self.problem.w
             self.bc.predict(bc_conv)
+            if self._t_response and np.any(t_new != t_conv):
+                # the object's move: the linear response of the last tangent (the elastic
+                # extension of a uniform shift of every Dirichlet node is that shift: the pads
+                # would not follow the object at all)
+                dt = t_new - t_conv
+                n = len(self._t_response[0])
+                w.x.array[:n] += sum(dt[c] * self._t_response[c] for c in range(3))
+                w.x.scatter_forward()
             if self._dw is not None and cuts == 0 and self._dbc > 0.0:
                 # two predictors, the one with the smaller residual wins: the elastic extension
                 # of the bone motion (robust far from contact, but it pushes loaded pads into
@@ -696,9 +722,11 @@ class GraspFE:
                     blend = min(1.0, 2.0 * blend)
                 self._substep = blend
                 bc_conv = self.bc.ubc.x.array.copy()
+                t_conv = t_new.copy()
                 w0 = self.problem.w.x.array.copy()
                 continue
             self._set_state(w0)
+            self.contact.translation.value = t_conv
             cuts += 1
             self.cuts += 1
             blend /= 2
@@ -921,8 +949,9 @@ class GraspFE:
                 self._ddofs[d] = dd
         return self._ddofs
 
-    def digit_forces(self) -> dict[str, float]:
-        """Magnitude of the contact force (N) each participating digit exerts on the object."""
+    def _contact_force_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """Contact force (N) the skin exerts on the object: (net vector, one vector per
+        participating digit), summed over ranks."""
         from dolfinx.fem import petsc as fem_petsc
         from petsc4py import PETSc
 
@@ -930,10 +959,22 @@ class GraspFE:
         Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         r = Rc.getArray()
         dd = self._digit_dofs()
-        local = np.array([[r[x].sum() for x in dd[d]] for d in self.grasp.digits])
+        local = np.array([[r[x].sum() for x in dd[d]] for d in self.grasp.digits]
+                         + [[r[x].sum() for x in self.bc.all_comp_dofs]])
         Rc.destroy()
         tot = np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
-        return {d: float(np.linalg.norm(v)) for d, v in zip(self.grasp.digits, tot, strict=True)}
+        return tot[-1], tot[:-1]
+
+    def digit_forces(self) -> dict[str, float]:
+        """Magnitude of the contact force (N) each participating digit exerts on the object."""
+        _, per = self._contact_force_sums()
+        return {d: float(np.linalg.norm(v)) for d, v in zip(self.grasp.digits, per, strict=True)}
+
+    def object_residual(self) -> tuple[np.ndarray, float]:
+        """Net contact force on the object minus the force it must carry (N), and the grip
+        (sum of the digits' force magnitudes, N) that scales it."""
+        net, per = self._contact_force_sums()
+        return net - self.force_target, float(np.linalg.norm(per, axis=1).sum())
 
     def _snapshot(self) -> dict[str, Any]:
         """Everything a closing step changes (state, bone data, contact multipliers, penalty,
@@ -942,7 +983,8 @@ class GraspFE:
         snap = {"theta": self.theta.copy(), "motions": self.motions,
                 "skel": getattr(self, "skel", None), "w": self.problem.w.x.array.copy(),
                 "ubc": self.bc.ubc.x.array.copy(), "k": float(c.k_n.value),
-                "dw": self._dw, "dbc": self._dbc}
+                "dw": self._dw, "dbc": self._dbc,
+                "translation": np.array(c.translation.value, dtype=float)}
         for name in ("lambda_n", "lambda_t", "u_ref"):
             f = getattr(c, name)
             snap[name] = None if f is None else f.x.array.copy()
@@ -953,6 +995,7 @@ class GraspFE:
         self.theta, self.motions, self.skel = snap["theta"].copy(), snap["motions"], snap["skel"]
         self._set_state(snap["w"])
         self.bc.ubc.x.array[:] = snap["ubc"]
+        c.translation.value = snap["translation"]
         c.set_penalty(snap["k"])
         self._dw, self._dbc = snap["dw"], snap["dbc"]
         for name in ("lambda_n", "lambda_t", "u_ref"):
@@ -1103,6 +1146,14 @@ class GraspFE:
         tau_m = self.tau_muscle.copy()
         tq = self.torques()
         tau_hold = -(tq["ligament"] + tq["tissue"])
+        f_hold = np.zeros(3)
+        if getattr(self, "object_free", False):
+            # the support carries this force on the object in the closed posture; it fades
+            # with the muscle load, so at full load the digits alone hold the object
+            f_hold, _ = self.object_residual()
+            f_hold = f_hold + self.force_target
+            self.say("  object free to translate; force on it in the closed posture "
+                     + " ".join(f"{x:+.2f}" for x in f_hold) + " N (fades with the load)")
         self.say("  muscle torques (N mm): " + ", ".join(
             f"{j.name} {m:.0f} (holding {h:.0f})" for j, m, h in
             zip(self.joints, tau_m, tau_hold, strict=True)))
@@ -1112,6 +1163,7 @@ class GraspFE:
             while done < 1.0 - 1e-12:
                 lam = min(1.0, done + ds)
                 self.tau_muscle = tau_hold + lam * (tau_m - tau_hold)
+                self.force_target = (1.0 - lam) * f_hold
                 snap = self._snapshot()
                 self.say(f"  muscle load {lam:.3f}")
                 ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
@@ -1140,6 +1192,7 @@ class GraspFE:
                 # the state is the last balanced load's (restored): its torques, with the
                 # torque applied there, are what a partial report shows
                 self.tau_muscle = tau_hold + self.muscle_load * (tau_m - tau_hold)
+                self.force_target = (1.0 - self.muscle_load) * f_hold
                 self.torque = self.torques()
                 self.digit_force_N = self.digit_forces()
             raise
@@ -1149,20 +1202,32 @@ class GraspFE:
         self.torque = self.torques()
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
-        """Newton on the released joint angles until applied (``tau_muscle``) + ligament +
-        tissue torque is <= ``rtol`` (relative) at every free joint; a joint pushed past its
-        limit stays there (end stop). Returns (converged, why not)."""
-        from handfe.grasp.fe import condensed_torque_jacobian
+        """Newton on the released joint angles (and, with a free object, its translation)
+        until applied (``tau_muscle``) + ligament + tissue torque is <= ``rtol`` (relative) at
+        every free joint and the object's net force is within ``rtol`` of the grip of its
+        target; a joint pushed past its limit stays there (end stop). Returns (converged, why
+        not)."""
+        from handfe.grasp import fe
 
         s = self.wf.solver
-        limit = DigitStepLimiter([j.digit for j in self.joints], math.radians(s.max_step_deg),
-                                 start_fraction=0.25)
+        free_obj = getattr(self, "object_free", False)
+        nj = len(self.joints)
+        n_t = 3 if free_obj else 0
+        # unknowns (theta in rad, t / OBJECT_LENGTH_MM) and residuals (torques in N mm, the
+        # object force x OBJECT_LENGTH_MM): work-conjugate pairs, one trust-radius scale
+        L = OBJECT_LENGTH_MM
+        names = [j.digit for j in self.joints] + ["object"] * n_t
+        limit = DigitStepLimiter(names, math.radians(s.max_step_deg), start_fraction=0.25)
         rel = float("inf")
         hist: list[float] = []
         B = self._coupling_matrix()
-        qgroups = [self.joints[int(np.flatnonzero(B[:, k])[0])].digit for k in range(B.shape[1])]
+        E = np.zeros((nj + n_t, B.shape[1] + n_t))  # (theta, s) = E (q, s)
+        E[:nj, :B.shape[1]] = B
+        E[nj:, B.shape[1]:] = np.eye(n_t)
+        qgroups = [self.joints[int(np.flatnonzero(B[:, k])[0])].digit
+                   for k in range(B.shape[1])] + ["object"] * n_t
         rho = {g: 1.0 for g in qgroups}
-        last = None  # (g, predicted change of g) of the last step, joint space
+        last = None  # (residual, predicted change of it) of the last step, (theta, s) space
         for it in range(1, s.max_outer + 1):
             self.outer_iterations += 1
             tq = self.torques()
@@ -1173,14 +1238,23 @@ class GraspFE:
             relv = np.where(free, tq["relative"], 0.0)
             rel = float(relv.max(initial=0.0))
             k = int(np.argmax(relv))
-            self.say(f"    torque Newton {it}: max relative residual {rel:.2e} at "
-                     f"{self.joints[k].name} (applied {tq['muscle'][k]:.0f}, ligament "
-                     f"{tq['ligament'][k]:.0f}, tissue/contact {tq['tissue'][k]:.0f} N mm)")
+            msg = (f"    torque Newton {it}: max relative residual {rel:.2e} at "
+                   f"{self.joints[k].name} (applied {tq['muscle'][k]:.0f}, ligament "
+                   f"{tq['ligament'][k]:.0f}, tissue/contact {tq['tissue'][k]:.0f} N mm)")
+            gx = g
+            if free_obj:
+                f, grip = self.object_residual()
+                self.object_relative = float(np.linalg.norm(f)) / max(grip, 1e-9)
+                msg += (f"; object force off by {np.linalg.norm(f):.3f} N "
+                        f"({self.object_relative:.1e} of the grip {grip:.1f} N)")
+                gx = np.concatenate([g, L * f])
+                rel = max(rel, self.object_relative)
+            self.say(msg)
             if rel <= rtol:
                 self.torque = tq
                 return True, ""
             if last is not None:
-                rho.update(response_ratios(B.T @ last[1], B.T @ (g - last[0]), qgroups, rho))
+                rho.update(response_ratios(E.T @ last[1], E.T @ (gx - last[0]), qgroups, rho))
             hist.append(rel)
             if len(hist) > STALL_WINDOW and min(hist[-STALL_WINDOW:]) > 0.9 * hist[
                     -STALL_WINDOW - 1]:
@@ -1188,49 +1262,69 @@ class GraspFE:
                                f"for {STALL_WINDOW} iterations; {self._friction_use()}")
             skel = self.kin.skeleton(self.theta)
             ac, dsets = self._joint_geometry(skel)
-            Jt = condensed_torque_jacobian(self.solver, self.bc, ac, dsets, self.problem.comm)
+            if free_obj:
+                T = fe.condensed_tangent(self.solver, self.bc, ac, dsets, self.problem.comm,
+                                         translate=True)
+                Jt = T.torque_theta
+                self._t_response = T.response_t
+            else:
+                Jt = fe.condensed_torque_jacobian(self.solver, self.bc, ac, dsets,
+                                                  self.problem.comm)
             Jl = np.zeros_like(Jt)
             h = 1e-4
             base = self.lig.torques(self.kin.motions(skel), skel, self.joints)
-            for i in range(len(self.joints)):
+            for i in range(nj):
                 th = self.theta.copy()
                 th[i] += math.degrees(h)
                 sk = self.kin.skeleton(th)
                 Jl[:, i] = (self.lig.torques(self.kin.motions(sk), sk, self.joints) - base) / h
-            # Newton in the coordinates q (d theta = B dq): B^T J B dq = -B^T g; a coordinate
+            J = Jt + Jl
+            if free_obj:
+                J = np.block([[J, L * T.torque_t], [L * T.force_theta, L * L * T.force_t]])
+            # Newton in the coordinates q (d theta = B dq): E^T J E dq = -E^T g; a coordinate
             # is held when one of its joints sits at its limit
-            Jq = B.T @ (Jt + Jl) @ B
-            gq = B.T @ g
-            fq = ~np.any((B != 0.0) & ~free[:, None], axis=0)
-            dq = np.zeros(B.shape[1])
+            Jq = E.T @ J @ E
+            gq = E.T @ gx
+            fq = ~np.any((E[:nj] != 0.0) & ~free[:, None], axis=0)
+            dq = np.zeros(E.shape[1])
             Jf = Jq[np.ix_(fq, fq)]
             try:
                 dq[fq] = np.linalg.solve(Jf, -gq[fq])
             except np.linalg.LinAlgError:
                 dq[fq] = np.linalg.lstsq(Jf, -gq[fq], rcond=None)[0]
-            dn = B @ dq
+            dn = E @ dq
             # a digit that answered its last step with rho x the predicted torque change is
             # solved with rho x its tangent (slipping pad nodes give less than their stick
             # springs promise: Newton then crawled at ~6 % per iteration on the pinch's thumb);
-            # each digit moves at most its radius, damped along its soft directions only, and
-            # the radii adapt to the damped step's direction (a reversal = an overshoot)
+            # each digit (and the object) moves at most its radius, damped along its soft
+            # directions only, and the radii adapt to the damped step's direction (a reversal
+            # = an overshoot)
             qdig = [qgroups[k] for k in np.flatnonzero(fq)]
             Kf = -np.array([rho[q] for q in qdig])[:, None] * Jf
             dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.radius)
-            dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.update(B @ dq))
-            d = limit.accept(B @ dq, dn)
-            raw = float(np.degrees(np.abs(dn).max(initial=0.0)))
+            dq[fq] = damped_newton_step(Kf, gq[fq], qdig, limit.update(E @ dq))
+            d = limit.accept(E @ dq, dn)
+            raw = float(np.degrees(np.abs(dn[:nj]).max(initial=0.0)))
             soft = ", ".join(f"{dg} x{r:.2f}" for dg, r in rho.items() if r < 0.99)
-            self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d))
+            t_now = np.array(self.contact.translation.value, dtype=float) if free_obj else None
+            dt = L * d[nj:] if free_obj else np.zeros(3)
+            self.say("      step (deg): " + " ".join(f"{x:+.2f}" for x in np.degrees(d[:nj]))
+                     + (" object (mm): " + " ".join(f"{x:+.3f}" for x in dt) if free_obj
+                        else "")
                      + f" (Newton's largest {raw:.2f}" + (f"; tangent {soft})" if soft else ")"))
             before = self.theta.copy()
             try:
-                self._go_to(self.kin.clamp(self.theta + np.degrees(d)),
-                            label=f"{label}, torque iteration {it}", max_cuts=3)
+                kw = {"translation": t_now + dt} if free_obj else {}
+                self._go_to(self.kin.clamp(self.theta + np.degrees(d[:nj])),
+                            label=f"{label}, torque iteration {it}", max_cuts=3, **kw)
             except SolverError as exc:
                 return False, str(exc)
             # the step taken (joint limits may have clamped it) and the change it predicted
-            last = (g, (Jt + Jl) @ np.radians(self.theta - before))
+            taken = np.radians(self.theta - before)
+            if free_obj:
+                taken = np.concatenate([taken, (np.array(self.contact.translation.value,
+                                                         dtype=float) - t_now) / L])
+            last = (gx, J @ taken)
         return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
 
     def _friction_use(self) -> str:
@@ -1309,8 +1403,18 @@ class GraspFE:
         from handfe.grasp.fe import global_equilibrium
 
         pen = self.contact.uzawa.penetration() if self.contact.uzawa else float("nan")
-        eq = global_equilibrium(self.solver, self.bc, self.problem.comm)
-        return {"joints": joints, **eq, "max_relative_torque_residual": float(
+        _, per = self._contact_force_sums()
+        eq = global_equilibrium(self.solver, self.bc, self.problem.comm,
+                                scale_N=float(np.linalg.norm(per, axis=1).sum()))
+        obj = {"free": bool(getattr(self, "object_free", False)),
+               "translation_mm": (np.array(self.contact.translation.value, dtype=float)
+                                  - self.translation0).tolist(),
+               "force_target_N": self.force_target.tolist()}
+        if obj["free"]:
+            f, grip = self.object_residual()
+            obj["force_residual_N"] = f.tolist()
+            obj["relative_force_residual"] = float(np.linalg.norm(f) / max(grip, 1e-9))
+        return {"joints": joints, **eq, "object_motion": obj, "max_relative_torque_residual": float(
                     np.where(self.at_limit, 0.0, tq["relative"]).max(initial=0.0)),
                 "max_penetration_mm": float(pen), "load_steps": len(self.steps),
                 "newton_iterations": int(self.solver.iterations),
