@@ -587,3 +587,104 @@ def test_muscles_mode_dip_pip_coupling_balances_the_coupled_coordinate(monkeypat
     raw = tau + tq["ligament"] + tq["tissue"]
     assert tq["coupling"][1] == pytest.approx(-raw[1])
     assert raw[0] + 2.0 / 3.0 * raw[1] == pytest.approx(0.0, abs=1e-3 * np.abs(tau).max())
+
+
+class _FakePinch(_FakeMuscles):
+    """Two digits (one joint each) pinch an object free to move along x: the thumb pad
+    presses it along +x, the index pad along -x, each with a force a (exp(b x) - 1) of its
+    indentation x = theta (rad) -/+ t_x / r; the pad forces act on r = 20 mm levers; along y
+    and z the object sits on stick springs (10 N/mm). Stiff ligaments (2000 N mm/rad): with a
+    free object the digits and the object swing together at no cost to the pads, and only
+    the ligaments take up the two muscles' difference. The condensed tangent is exact."""
+
+    r, a, b, k_yz = 20.0, 2.0, 12.0, 10.0
+
+    def __init__(self, tau_muscle, free=True):
+        from types import SimpleNamespace
+
+        super().__init__(tau_muscle)
+        self.joints = [SimpleNamespace(name="thumb_mcp", digit="thumb"),
+                       SimpleNamespace(name="index_mcp", digit="index")]
+        self.grasp = SimpleNamespace(digits=("thumb", "index"))
+        self.object_free = free
+        self.contact = SimpleNamespace(uzawa=None, translation=SimpleNamespace(
+            value=np.zeros(3)))
+        self.force_target = np.zeros(3)
+        self._t_response: list = []
+        self.lig = SimpleNamespace(torques=lambda m, sk, joints: -2000.0 * np.radians(sk))
+
+    def _pads(self, theta, t):
+        x = np.radians(theta) + np.array([-1.0, 1.0]) * t[0] / self.r
+        return self.a * np.expm1(self.b * x), self.a * self.b * np.exp(self.b * x)
+
+    def _tissue(self, theta):
+        return -self.r * self._pads(theta, self.contact.translation.value)[0]
+
+    def object_residual(self):
+        F, _ = self._pads(self.theta, self.contact.translation.value)
+        t = self.contact.translation.value
+        net = np.array([F[0] - F[1], -self.k_yz * t[1], -self.k_yz * t[2]])
+        return net - self.force_target, float(np.abs(F).sum())
+
+    def digit_forces(self):
+        F, _ = self._pads(self.theta, self.contact.translation.value)
+        return {"thumb": float(F[0]), "index": float(F[1])}
+
+    def tangent(self, *a, translate=False):
+        from handfe.grasp.fe import CondensedTangent
+
+        _, dF = self._pads(self.theta, self.contact.translation.value)
+        s = np.array([-1.0, 1.0]) / self.r  # d(indentation)/d(t_x)
+        T = CondensedTangent(torque_theta=np.diag(-self.r * dF))
+        T.torque_t = np.zeros((2, 3))
+        T.torque_t[:, 0] = -self.r * dF * s
+        T.force_theta = np.zeros((3, 2))
+        T.force_theta[0] = [dF[0], -dF[1]]
+        T.force_t = np.diag([dF[0] * s[0] - dF[1] * s[1], -self.k_yz, -self.k_yz])
+        return T
+
+    def _go_to(self, theta, *, label, max_cuts=6, translation=None):
+        self.theta = np.array(theta, dtype=float)
+        if translation is not None:
+            self.contact.translation.value = np.array(translation, dtype=float)
+
+    def _snapshot(self):
+        return self.theta.copy(), self.contact.translation.value.copy()
+
+    def _restore(self, snap):
+        self.theta, self.contact.translation.value = snap[0].copy(), snap[1].copy()
+
+    def _close_digits(self):
+        self.theta = np.array([1.0, 1.0])  # both pads pressing lightly, balanced
+
+    def _friction_use(self):
+        return "contact forces: -"
+
+
+def test_muscles_mode_free_object_moves_until_the_digits_balance_on_it(monkeypatch):
+    # the thumb's muscles pull twice as hard as the index's: with the object free, it moves
+    # towards the index until both pads push equally (net force 0, every torque balanced);
+    # held in space, the object takes the difference
+    import handfe.grasp.fe as fe
+    from handfe.grasp.scene import GraspFE
+
+    tau = np.array([1200.0, 600.0])
+    fake = _FakePinch(tau)
+    monkeypatch.setattr(fe, "condensed_tangent", fake.tangent)
+    GraspFE.solve_muscles(fake)
+    assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+    assert not fake.at_limit.any()
+    f, grip = fake.object_residual()
+    assert np.linalg.norm(f) <= fake.wf.solver.torque_rtol * grip
+    F = fake.digit_forces()
+    assert F["thumb"] == pytest.approx(F["index"], rel=2e-3)
+    assert fake.contact.translation.value[0] > 1.0  # pushed (+x) towards the index
+    assert any("object (mm)" in m for m in fake.log)
+
+    held = _FakePinch(tau, free=False)
+    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: held.tangent().torque_theta)
+    GraspFE.solve_muscles(held)
+    F = held.digit_forces()
+    assert np.all(held.torque["relative"] <= held.wf.solver.torque_rtol)
+    assert F["thumb"] > 1.5 * F["index"]  # the support carries the difference
+    assert np.array_equal(held.contact.translation.value, np.zeros(3))

@@ -469,8 +469,13 @@ class DigitStepLimiter:
             if g in self.prev:
                 p, capped = self.prev[g]
                 dot = float(d_new[self.names == g] @ p)
-                if dot < 0.0:
-                    r = max(0.5 * min(r, float(np.abs(p).max(initial=0.0))), self.min_rad)
+                p_max = float(np.abs(p).max(initial=0.0))
+                # a reversal after a step far inside the radius is not an overshoot to bisect:
+                # the group was nearly balanced and another group's step (the object's, the
+                # other digits') moved its residual; halving that tiny step froze the object
+                # of a stand-in pinch at 1e-3 mm steps while its force was 12 % off
+                if dot < 0.0 and p_max >= 0.1 * r:
+                    r = max(0.5 * min(r, p_max), self.min_rad)
                 elif capped and dot > 0.0:
                     r = min(2.0 * r, self.max_rad)
                 self.radius[g] = r
