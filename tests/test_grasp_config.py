@@ -688,3 +688,39 @@ def test_muscles_mode_free_object_moves_until_the_digits_balance_on_it(monkeypat
     assert np.all(held.torque["relative"] <= held.wf.solver.torque_rtol)
     assert F["thumb"] > 1.5 * F["index"]  # the support carries the difference
     assert np.array_equal(held.contact.translation.value, np.zeros(3))
+
+
+def test_muscles_mode_uzawa_updates_after_each_balanced_load(monkeypatch):
+    # with step_uzawa, a balanced muscle load that leaves the pads deeper than
+    # step_penetration_mm gets Uzawa updates and is balanced again before the next load
+    from dataclasses import replace
+
+    import handfe.grasp.fe as fe
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeMuscles([900.0, 400.0])
+    fake.wf.solver = replace(fake.wf.solver, step_uzawa=True, step_penetration_mm=0.1)
+    depth = {"mm": 1.0}
+    calls: list[tuple] = []
+
+    def augment(tol_mm=None, *, creep=True, stop=None):
+        calls.append((tol_mm, creep))
+        depth["mm"] = tol_mm if tol_mm is not None else 0.005
+
+    fake.contact.uzawa = type("U", (), {"penetration": lambda self: depth["mm"]})()
+    fake.augment = augment
+    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
+        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    labels = []
+    balance = fake._balance_torques
+
+    def spy(rtol, *, label):
+        labels.append(label)
+        depth["mm"] = 1.0 if "Uzawa" not in label else depth["mm"]  # a new load sinks in
+        return balance(rtol, label=label)
+
+    fake._balance_torques = spy
+    GraspFE.solve_muscles(fake)
+    assert calls[0] == (0.1, False)
+    assert labels[:2] == ["muscle load 0.25", "muscle load 0.25 (Uzawa)"]
+    assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)

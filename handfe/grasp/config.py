@@ -80,10 +80,13 @@ class SolverSpec:
     # the default); 0 = DIP free: a finger whose pad sticks then curls (MCP+, PIP-, DIP+)
     # with the pad in place, resisted by nothing in the model (docs/grasp.md)
     dip_pip_coupling: float = field(default=2.0 / 3.0, metadata=bounds(0.0, 1.5))
-    # muscles mode: the object translates freely - three more unknowns of the torque Newton,
-    # its net contact force goes from the one the support takes in the closed posture to 0
-    # with the muscle load (a held object; its rotation stays fixed). false = held in space
-    free_object: bool = True
+    # muscles mode: true = the object translates freely (three more unknowns of the torque
+    # Newton; its net contact force goes from the one the support takes in the closed posture
+    # to 0 with the muscle load; rotation fixed). Default false: the object is held in space
+    # and its support takes the net force, as in the source model - with the nine flexor-side
+    # muscles and no extensors a free pinch has no stable posture (docs/grasp.md, run r2 of
+    # 2 Dec 2026: thumb, fingers and ball travel together at every load)
+    free_object: bool = False
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

@@ -1171,8 +1171,15 @@ class GraspFE:
                 self.force_target = (1.0 - lam) * f_hold
                 snap = self._snapshot()
                 self.say(f"  muscle load {lam:.3f}")
-                ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
-                                                else s.torque_rtol, label=f"muscle load {lam:.3g}")
+                rtol = 10.0 * s.torque_rtol if lam < 1.0 else s.torque_rtol
+                ok, why = self._balance_torques(rtol, label=f"muscle load {lam:.3g}")
+                if ok and s.step_uzawa and self.contact.uzawa is not None \
+                        and self.contact.uzawa.penetration() > s.step_penetration_mm:
+                    # Uzawa updates down to step_penetration_mm, then the balance again: the
+                    # penalty alone let the pads sink 1.3 mm at ~20 N (run r9), and a partial
+                    # result must be a contact, not a soft layer
+                    self.augment(s.step_penetration_mm, creep=False)
+                    ok, why = self._balance_torques(rtol, label=f"muscle load {lam:.3g} (Uzawa)")
                 if ok:
                     done = self.muscle_load = lam
                     continue
