@@ -691,7 +691,7 @@ def test_muscles_mode_free_object_moves_until_the_digits_balance_on_it(monkeypat
 
 
 def test_muscles_mode_uzawa_updates_after_each_balanced_load(monkeypatch):
-    # with step_uzawa, a balanced muscle load that leaves the pads deeper than
+    # with muscle_uzawa, a balanced muscle load that leaves the pads deeper than
     # step_penetration_mm gets Uzawa updates and is balanced again before the next load
     from dataclasses import replace
 
@@ -699,7 +699,7 @@ def test_muscles_mode_uzawa_updates_after_each_balanced_load(monkeypatch):
     from handfe.grasp.scene import GraspFE
 
     fake = _FakeMuscles([900.0, 400.0])
-    fake.wf.solver = replace(fake.wf.solver, step_uzawa=True, step_penetration_mm=0.1)
+    fake.wf.solver = replace(fake.wf.solver, muscle_uzawa=True, step_penetration_mm=0.1)
     depth = {"mm": 1.0}
     calls: list[tuple] = []
 

@@ -390,7 +390,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                 f"outputs of the last balanced load: applied torque = holding + {part:.3g} x "
                 "(muscle - holding), reported as muscle_Nmm; intermediate loads are balanced "
                 "to 10 x torque_rtol (max_relative_torque_residual), before the final Uzawa "
-                "phase (max_penetration_mm)")}
+                "phase (max_penetration_mm; with muscle_uzawa, Uzawa updates to "
+                "step_penetration_mm at every load)")}
             say(f"writing the partial results at muscle load {part:.3g}")
             try:
                 _write_outputs(scene, summary, out, wf, grasp, mode, H, comm)
@@ -1173,11 +1174,10 @@ class GraspFE:
                 self.say(f"  muscle load {lam:.3f}")
                 rtol = 10.0 * s.torque_rtol if lam < 1.0 else s.torque_rtol
                 ok, why = self._balance_torques(rtol, label=f"muscle load {lam:.3g}")
-                if ok and s.step_uzawa and self.contact.uzawa is not None \
+                if ok and s.muscle_uzawa and self.contact.uzawa is not None \
                         and self.contact.uzawa.penetration() > s.step_penetration_mm:
                     # Uzawa updates down to step_penetration_mm, then the balance again: the
-                    # penalty alone let the pads sink 1.3 mm at ~20 N (run r9), and a partial
-                    # result must be a contact, not a soft layer
+                    # penalty alone let the pads sink 1.3 mm at ~20 N (run r9)
                     self.augment(s.step_penetration_mm, creep=False)
                     ok, why = self._balance_torques(rtol, label=f"muscle load {lam:.3g} (Uzawa)")
                 if ok:
