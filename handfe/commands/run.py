@@ -21,7 +21,9 @@ Loading:
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
            and the released flexion angles are solved so that muscle + ligament +
            tissue/contact torques balance at every joint (relative residual <= 1e-3);
-           solver.dip_pip_coupling (default 2/3) ties each DIP to its PIP
+           solver.dip_pip_coupling (default 2/3) ties each DIP to its PIP; the object is
+           held (its support takes the net force); solver.free_object = true solves its
+           translation too (no stable pinch with the nine flexor-side muscles: docs/grasp.md)
   angles   (default) each participating digit closes from the pre-closed posture until it
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
            bring the penetration to <= 0.01 mm
