@@ -44,9 +44,10 @@ def _chain(angles) -> tuple[dict, list]:
     return motions, [(A0, C0), (Q0 @ A1, Q0 @ (C1 - C0) + C0)]
 
 
-@pytest.mark.mpi
-def test_condensed_torque_jacobian_matches_finite_differences():
-    comm = MPI.COMM_WORLD
+def _block(comm):
+    """A 10 x 6 x 4 mm block of Ogden skin (p1-p1s): base fixed (wrist tag 90), the top face
+    split into two rigid "bones" p (x < 5) and d (x > 5), the x = 10 face tagged 7 for a
+    foundation. Returns (mesh, problem, bone BC, ds)."""
     msh = mesh.create_box(comm, [np.zeros(3), np.array([10.0, 6.0, 4.0])], [5, 3, 2],
                           mesh.CellType.tetrahedron)
     nc = msh.topology.index_map(3).size_local
@@ -65,6 +66,13 @@ def test_condensed_torque_jacobian_matches_finite_differences():
     problem = GraspProblem(model, skin, skin, element="p1-p1s")
     bc = BoneBC(problem, model, ["p", "d"])
     ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
+    return msh, problem, bc, ds
+
+
+@pytest.mark.mpi
+def test_condensed_torque_jacobian_matches_finite_differences():
+    comm = MPI.COMM_WORLD
+    msh, problem, bc, ds = _block(comm)
     k = fem.Constant(msh, 1e-3)  # MPa/mm: a soft foundation on the x = 10 face
     problem.add_residual(k * ufl.inner(ufl.split(problem.w)[0], problem.vu) * ds(7))
     solver = TwoFormNewton(problem, max_it=40)
@@ -112,24 +120,7 @@ def test_condensed_tangent_of_the_object_translation_matches_finite_differences(
     from handfe.grasp.fe import condensed_tangent
 
     comm = MPI.COMM_WORLD
-    msh = mesh.create_box(comm, [np.zeros(3), np.array([10.0, 6.0, 4.0])], [5, 3, 2],
-                          mesh.CellType.tetrahedron)
-    nc = msh.topology.index_map(3).size_local
-    ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), np.full(nc, SKIN, np.int32))
-    top_p = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 4.0) & (x[0] < 5))
-    top_d = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 4.0) & (x[0] > 5))
-    base = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[2], 0.0))
-    side = mesh.locate_entities_boundary(msh, 2, lambda x: np.isclose(x[0], 10.0))
-    f = np.concatenate([top_p, top_d, base, side]).astype(np.int32)
-    v = np.concatenate([np.full(len(top_p), 5), np.full(len(top_d), 6), np.full(len(base), 90),
-                        np.full(len(side), 7)]).astype(np.int32)
-    order = np.argsort(f)
-    ft = mesh.meshtags(msh, 2, f[order], v[order])
-    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={"bone_p": 5, "bone_d": 6})
-    skin = Ogden.skin(nu=0.49)
-    problem = GraspProblem(model, skin, skin, element="p1-p1s")
-    bc = BoneBC(problem, model, ["p", "d"])
-    ds = ufl.Measure("ds", domain=msh, subdomain_data=ft)
+    msh, problem, bc, ds = _block(comm)
     k = fem.Constant(msh, 1e-3)
     t = fem.Constant(msh, np.array([0.5, -0.3, 0.2]))
     u = ufl.split(problem.w)[0]
