@@ -87,10 +87,10 @@ class SolverSpec:
     # muscles and no extensors a free pinch has no stable posture (docs/grasp.md, run r2 of
     # 2 Dec 2026: thumb, fingers and ball travel together at every load)
     free_object: bool = False
-    # muscles mode: Uzawa updates down to step_penetration_mm after each balanced muscle load,
-    # then the balance again (off: the intermediate loads keep the penalty's penetration, ~1 mm
-    # at 20 N on the coarse pinch; on, the re-balance after the updates needed FE step cuts to
-    # 1/16 and ran ~10x slower - run r3, docs/grasp.md)
+    # muscles mode: one Uzawa update (down to step_penetration_mm) after each torque step
+    # that leaves the pads deeper than that, so every balanced load is a contact, not the
+    # penalty's ~1 mm at 20 N (off by default; all updates after a balanced load made a jump
+    # the re-balance needed FE step cuts to 1/16 for - run r3, docs/grasp.md)
     muscle_uzawa: bool = False
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object

@@ -1172,14 +1172,8 @@ class GraspFE:
                 self.force_target = (1.0 - lam) * f_hold
                 snap = self._snapshot()
                 self.say(f"  muscle load {lam:.3f}")
-                rtol = 10.0 * s.torque_rtol if lam < 1.0 else s.torque_rtol
-                ok, why = self._balance_torques(rtol, label=f"muscle load {lam:.3g}")
-                if ok and s.muscle_uzawa and self.contact.uzawa is not None \
-                        and self.contact.uzawa.penetration() > s.step_penetration_mm:
-                    # Uzawa updates down to step_penetration_mm, then the balance again: the
-                    # penalty alone let the pads sink 1.3 mm at ~20 N (run r9)
-                    self.augment(s.step_penetration_mm, creep=False)
-                    ok, why = self._balance_torques(rtol, label=f"muscle load {lam:.3g} (Uzawa)")
+                ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
+                                                else s.torque_rtol, label=f"muscle load {lam:.3g}")
                 if ok:
                     done = self.muscle_load = lam
                     continue
@@ -1223,6 +1217,9 @@ class GraspFE:
 
         s = self.wf.solver
         free_obj = getattr(self, "object_free", False)
+        # muscle_uzawa: one Uzawa update after every torque step that leaves the pads deeper
+        # than step_penetration_mm (a few tenths of a mm at a time, not one jump at the end)
+        uzawa = s.muscle_uzawa and self.contact.uzawa is not None
         nj = len(self.joints)
         n_t = 3 if free_obj else 0
         # unknowns (theta in rad, t / OBJECT_LENGTH_MM) and residuals (torques in N mm, the
@@ -1262,9 +1259,16 @@ class GraspFE:
                 gx = np.concatenate([g, L * f])
                 rel = max(rel, self.object_relative)
             self.say(msg)
-            if rel <= rtol:
+            deep = uzawa and self.contact.uzawa.penetration() > s.step_penetration_mm
+            if rel <= rtol and not deep:
                 self.torque = tq
                 return True, ""
+            if rel <= rtol:
+                # balanced, but the pads are deeper than step_penetration_mm: one Uzawa update
+                # and the balance goes on from there
+                self._one_uzawa_update()
+                last = None
+                continue
             if last is not None:
                 rho.update(response_ratios(E.T @ last[1], E.T @ (gx - last[0]), qgroups, rho))
             hist.append(rel)
@@ -1337,7 +1341,20 @@ class GraspFE:
                 taken = np.concatenate([taken, (np.array(self.contact.translation.value,
                                                          dtype=float) - t_now) / L])
             last = (gx, J @ taken)
+            if uzawa and self.contact.uzawa.penetration() > s.step_penetration_mm:
+                self._one_uzawa_update()
+                last = None  # the update changed the residual: no response ratio from it
         return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
+
+    def _one_uzawa_update(self) -> None:
+        """One Uzawa update of the normal multipliers (penetration only) and its re-solve."""
+        calls: list[int] = []
+
+        def once() -> bool:
+            calls.append(1)
+            return len(calls) > 1
+
+        self.augment(self.wf.solver.step_penetration_mm, creep=False, stop=once)
 
     def _friction_use(self) -> str:
         """Each participating digit's tangential / normal contact force against the friction
