@@ -390,8 +390,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                 f"outputs of the last balanced load: applied torque = holding + {part:.3g} x "
                 "(muscle - holding), reported as muscle_Nmm; intermediate loads are balanced "
                 "to 10 x torque_rtol (max_relative_torque_residual), before the final Uzawa "
-                "phase (max_penetration_mm; with muscle_uzawa, Uzawa updates to "
-                "step_penetration_mm at every load)")}
+                "phase (max_penetration_mm; with muscle_uzawa, each load ends with the "
+                "pads within step_penetration_mm)")}
             say(f"writing the partial results at muscle load {part:.3g}")
             try:
                 _write_outputs(scene, summary, out, wf, grasp, mode, H, comm)
@@ -1253,11 +1253,11 @@ class GraspFE:
             gx = g
             if free_obj:
                 f, grip = self.object_residual()
-                self.object_relative = float(np.linalg.norm(f)) / max(grip, 1e-9)
+                rel_f = float(np.linalg.norm(f)) / max(grip, 1e-9)
                 msg += (f"; object force off by {np.linalg.norm(f):.3f} N "
-                        f"({self.object_relative:.1e} of the grip {grip:.1f} N)")
+                        f"({rel_f:.1e} of the grip {grip:.1f} N)")
                 gx = np.concatenate([g, L * f])
-                rel = max(rel, self.object_relative)
+                rel = max(rel, rel_f)
             self.say(msg)
             deep = uzawa and self.contact.uzawa.penetration() > s.step_penetration_mm
             if rel <= rtol and not deep:
