@@ -620,15 +620,23 @@ class _FakePinch(_FakeMuscles):
     def _tissue(self, theta):
         return -self.r * self._pads(theta, self.contact.translation.value)[0]
 
-    def object_residual(self):
+    def _contact_force_sums(self):
+        # (net force on the object, each digit's force vector), N; the y/z springs stand
+        # in for the rest of the skin
         F, _ = self._pads(self.theta, self.contact.translation.value)
         t = self.contact.translation.value
         net = np.array([F[0] - F[1], -self.k_yz * t[1], -self.k_yz * t[2]])
-        return net - self.force_target, float(np.abs(F).sum())
+        return net, np.array([[F[0], 0.0, 0.0], [-F[1], 0.0, 0.0]])
+
+    def object_residual(self):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE.object_residual(self)
 
     def digit_forces(self):
-        F, _ = self._pads(self.theta, self.contact.translation.value)
-        return {"thumb": float(F[0]), "index": float(F[1])}
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE.digit_forces(self)
 
     def tangent(self, *a, translate=False):
         from handfe.grasp.fe import CondensedTangent
@@ -703,11 +711,11 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
     depth = {"mm": 1.0}
     calls: list[tuple] = []
 
-    def augment(tol_mm=None, *, creep=True, stop=None):
-        if stop is None:  # the final Uzawa phase at full load
+    def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None):
+        if max_updates is None:  # the final Uzawa phase at full load
             depth["mm"] = 0.005
             return
-        assert not stop() and stop()  # one update, then stop
+        assert max_updates == 1  # one update, then stop
         calls.append((tol_mm, creep))
         depth["mm"] = max(0.5 * depth["mm"], 0.05)  # each update halves the depth
 

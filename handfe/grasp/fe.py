@@ -457,14 +457,13 @@ def condensed_torque_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, d
 class CondensedTangent:
     """The FE tangent condensed onto the joint angles theta (rad) and the object's translation
     t (mm), with the tissue in equilibrium. Torques in N mm, object force (the net force the
-    skin exerts on the object) in N. ``response_*``: the linear change of the state (owned
-    entries of the (u, p) vector) per unit theta_i / t_c, the tangent predictor of a step."""
+    skin exerts on the object) in N. ``response_t``: the linear change of the state (owned
+    entries of the (u, p) vector) per unit t_c, the predictor of an object move."""
 
     torque_theta: np.ndarray                     # (joints, joints)
     torque_t: np.ndarray | None = None           # (joints, 3)
     force_theta: np.ndarray | None = None        # (3, joints)
     force_t: np.ndarray | None = None            # (3, 3)
-    response_theta: list[np.ndarray] = field(default_factory=list)
     response_t: list[np.ndarray] = field(default_factory=list)
 
 
@@ -532,11 +531,10 @@ def condensed_tangent(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_se
                 continue
             wd, comp, x = bc.node_data(b)
             arr[wd] = np.cross(a, x - c)[np.arange(len(wd)), comp]
-        dz, dtq, df = respond(arr)
+        _, dtq, df = respond(arr)
         Jm[:, i] += dtq
         if translate:
             out.force_theta[:, i] = df
-            out.response_theta.append(dz)
     if translate:
         out.torque_t = np.zeros((nj, 3))
         out.force_t = np.zeros((3, 3))
@@ -591,7 +589,7 @@ def _lever_jacobian(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets
 def global_equilibrium(solver: TwoFormNewton, bc: BoneBC, comm, scale_N: float = 0.0) -> dict:
     """Force on the object (sum of the contact residual, N) against the support reactions
     (sum of the full residual over bone and wrist nodes, N): equal at equilibrium. The error
-    is relative to the larger of |object force| and ``scale_N`` (a held object's net force is
+    is relative to the larger of |object force| and ``scale_N`` (a free object's net force is
     ~0: pass the grip force)."""
     R = solver.full_residual()
     Rc = fem_petsc.assemble_vector(solver.L[1])

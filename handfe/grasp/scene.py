@@ -822,9 +822,10 @@ class GraspFE:
         return ok
 
     def augment(self, tol_mm: float | None = None, *, creep: bool = True,
-                stop: Callable[[], bool] | None = None) -> None:
+                stop: Callable[[], bool] | None = None, max_updates: int | None = None) -> None:
         """Uzawa updates until the penetration (and, if ``creep``, the stick creep) is <= the
-        tolerance (``tol_mm``, default the contact's), or ``stop()`` is true after a re-solve.
+        tolerance (``tol_mm``, default the contact's), or ``stop()`` is true after a re-solve,
+        at most ``max_updates`` (default ``solver.max_augment``).
         A re-solve that fails restores the last converged state and multipliers and stops (the
         penetration reached is reported, never hidden)."""
         c = self.contact
@@ -835,7 +836,7 @@ class GraspFE:
             if not creep:
                 c.stick_tol_mm = math.inf
             try:
-                self.augment(stop=stop)
+                self.augment(stop=stop, max_updates=max_updates)
             finally:
                 c.penetration_tol_mm, c.stick_tol_mm = tols
             return
@@ -844,7 +845,7 @@ class GraspFE:
         # of this phase start from it (a full update that Newton could not follow once tends to
         # fail again, each failure costing ~40 iterations; 0.25 x then converges in a few)
         relax0 = 1.0
-        for _ in range(self.wf.solver.max_augment):
+        for _ in range(self.wf.solver.max_augment if max_updates is None else max_updates):
             if stop is not None and stop():
                 return
             lam = c.lambda_n.x.array.copy()
@@ -1156,8 +1157,7 @@ class GraspFE:
         if getattr(self, "object_free", False):
             # the support carries this force on the object in the closed posture; it fades
             # with the muscle load, so at full load the digits alone hold the object
-            f_hold, _ = self.object_residual()
-            f_hold = f_hold + self.force_target
+            f_hold, _ = self._contact_force_sums()
             self.say("  object free to translate; force on it in the closed posture "
                      + " ".join(f"{x:+.2f}" for x in f_hold) + " N (fades with the load)")
         self.say("  muscle torques (N mm): " + ", ".join(
@@ -1348,13 +1348,7 @@ class GraspFE:
 
     def _one_uzawa_update(self) -> None:
         """One Uzawa update of the normal multipliers (penetration only) and its re-solve."""
-        calls: list[int] = []
-
-        def once() -> bool:
-            calls.append(1)
-            return len(calls) > 1
-
-        self.augment(self.wf.solver.step_penetration_mm, creep=False, stop=once)
+        self.augment(self.wf.solver.step_penetration_mm, creep=False, max_updates=1)
 
     def _friction_use(self) -> str:
         """Each participating digit's tangential / normal contact force against the friction
@@ -1432,17 +1426,16 @@ class GraspFE:
         from handfe.grasp.fe import global_equilibrium
 
         pen = self.contact.uzawa.penetration() if self.contact.uzawa else float("nan")
-        _, per = self._contact_force_sums()
-        eq = global_equilibrium(self.solver, self.bc, self.problem.comm,
-                                scale_N=float(np.linalg.norm(per, axis=1).sum()))
         obj = {"free": bool(getattr(self, "object_free", False)),
                "translation_mm": (np.array(self.contact.translation.value, dtype=float)
                                   - self.translation0).tolist(),
                "force_target_N": self.force_target.tolist()}
+        grip = 0.0  # a held object's equilibrium error stays relative to its net force
         if obj["free"]:
             f, grip = self.object_residual()
             obj["force_residual_N"] = f.tolist()
             obj["relative_force_residual"] = float(np.linalg.norm(f) / max(grip, 1e-9))
+        eq = global_equilibrium(self.solver, self.bc, self.problem.comm, scale_N=grip)
         return {"joints": joints, **eq, "object_motion": obj, "max_relative_torque_residual": float(
                     np.where(self.at_limit, 0.0, tq["relative"]).max(initial=0.0)),
                 "max_penetration_mm": float(pen), "load_steps": len(self.steps),
