@@ -38,6 +38,9 @@ def main() -> None:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--force", type=float, default=4.0, help="plate force, N (default 4)")
     ap.add_argument("--angle", type=float, default=15.0, help="plate angle, deg (default 15)")
+    ap.add_argument("--model", choices=("half", "full"), default="half",
+                    help="half (default, the scene's default: y >= 0 with u_y = 0 on the "
+                         "symmetry plane) or full fingertip")
     ap.add_argument("--sizes", default="3.0,2.5,2.0,1.5,1.2",
                     help="global element sizes h, mm, coarse to fine (pad is 0.6 h)")
     ap.add_argument("--elements", default="taylor-hood,p1-p0",
@@ -63,6 +66,7 @@ def main() -> None:
                 report(list(csv.DictReader(f)), Path(a.out), f"fingertip (from {a.from_csv})")
         return
     sizes = [float(x) for x in a.sizes.split(",")]
+    half = a.model == "half"
     rows = []
     t_start = time.perf_counter()
     out = Path(a.out)
@@ -76,10 +80,11 @@ def main() -> None:
             break
         if not a.no_warmup:
             # warm-up: compile this element's forms once (not timed)
-            run(FingertipConfig(angle_deg=a.angle, h_mm=max(sizes), element=el),
+            run(FingertipConfig(angle_deg=a.angle, h_mm=max(sizes), element=el,
+                                half_model=half),
                 force_N=min(a.force, 1.0), comm=comm)
         for h in sizes:
-            times, cpus, loads, res = [], [], [], None
+            times, cpus, loads, solves, res = [], [], [], [], None
             for _ in range(a.repeats):
                 # rank 0's time decides, so every rank stops at the same point
                 if times and (over_budget() or (a.max_repeat_s is not None and comm.bcast(
@@ -87,14 +92,17 @@ def main() -> None:
                     break
                 loads.append(os.getloadavg()[0])
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = run(FingertipConfig(angle_deg=a.angle, h_mm=h, element=el),
-                          force_N=a.force, comm=comm)
+                res = run(FingertipConfig(angle_deg=a.angle, h_mm=h, element=el,
+                                          half_model=half), force_N=a.force, comm=comm)
                 times.append(time.perf_counter() - t0)
+                solves.append(res.solve_s)
                 cpus.append(time.process_time() - c0)
             if res is None:
                 break
-            row = {"element": el, "h_mm": h, "dofs": res.dofs, "cells": res.cells,
-                   "runs": len(times), "wall_s_median": statistics.median(times),
+            row = {"element": el, "model": a.model, "h_mm": h, "dofs": res.dofs,
+                   "cells": res.cells, "runs": len(times),
+                   "wall_s_median": statistics.median(times),
+                   "solve_s_median": statistics.median(solves), "mesh_s": res.mesh_s,
                    "cpu_s_median": statistics.median(cpus), "load_avg_1min": max(loads),
                    "newton_iterations": res.newton_iterations, "load_steps": res.load_steps,
                    "uzawa_updates": res.uzawa_updates, "force_N": res.force_N,

@@ -733,8 +733,8 @@ def _clip_patch(x: np.ndarray, phi: np.ndarray, axes: np.ndarray):
 def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
                     gap_tol_mm: float = 0.01, pressure=None, tangential_traction=None,
                     axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), comm=None,
-                    quadrature_degree: int = 4, metadata: dict | None = None
-                    ) -> ContactMetrics:
+                    quadrature_degree: int = 4, metadata: dict | None = None,
+                    symmetry_normal=None) -> ContactMetrics:
     """Contact outputs of the surface region ``facet_tags == tag`` for the displacement ``u``
     (vector Function, mm) against ``obstacle`` translated by ``translation_value`` (3 floats).
 
@@ -750,6 +750,11 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
       contact area, peak = max of p at the region's vertices (interpolated to P1).
     * tangential_traction (MPa vector expression, e.g. ``ContactTerms.tangential_traction``):
       tangential_force_N = |int t_T da|; 0 if None and a pressure is given.
+
+    * symmetry_normal (3 floats): the mesh is one half of a body (and load) symmetric about the
+      plane through the origin with this normal; the outputs are the whole body's (areas and
+      force integrals doubled with their normal component cancelled, the patch mirrored for
+      the extents; each axis must lie in or across the plane).
 
     Every facet is counted once over MPI ranks (owned facets only) and all numbers are reduced
     with ``comm.allreduce``; the result is the same on every rank."""
@@ -782,6 +787,23 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
     mom = np.array([comm.allreduce(float(c), op=MPI.SUM) for c in mom_f.sum(axis=0)])
     lo = np.array([comm.allreduce(float(c), op=MPI.MIN) for c in lo])
     hi = np.array([comm.allreduce(float(c), op=MPI.MAX) for c in hi])
+    mirror = None
+    if symmetry_normal is not None:
+        e = np.asarray(_unit(symmetry_normal, "symmetry_normal"))
+
+        def mirror(v):  # the whole body's integral of a half's vector integral v
+            v = np.asarray(v, dtype=float)
+            return 2.0 * (v - (v @ e) * e)
+
+        area *= 2.0
+        mom = mirror(mom)
+        for k in range(2):
+            d = float(ax[k] @ e)
+            if abs(abs(d) - 1.0) < 1e-9 and hi[k] >= lo[k]:  # across the plane
+                lo[k], hi[k] = min(lo[k], -hi[k]), max(hi[k], -lo[k])
+            elif abs(d) > 1e-9:
+                raise InputError(f"axis {tuple(ax[k])} is neither in nor across the symmetry "
+                                 f"plane (normal {tuple(e)})")
     ext = np.where(hi >= lo, hi - lo, 0.0)
     gmin = comm.allreduce(float(np.min(g, initial=np.inf)), op=MPI.MIN)
     pen = max(0.0, -gmin) if np.isfinite(gmin) else 0.0
@@ -809,9 +831,12 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
             c.value = np.eye(7)[i]
             vals.append(comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM))
         psum = vals[0]
-        fvec = tuple(float(v) for v in vals[1:4])
+        fv, tv = np.array(vals[1:4]), np.array(vals[4:7]) if len(vals) > 4 else np.zeros(3)
+        if mirror is not None:
+            psum, fv, tv = 2.0 * psum, mirror(fv), mirror(tv)
+        fvec = tuple(float(v) for v in fv)
         fn = float(np.linalg.norm(fvec))
-        ft = float(np.linalg.norm(vals[4:7])) if tangential_traction is not None else 0.0
+        ft = float(np.linalg.norm(tv)) if tangential_traction is not None else 0.0
         pmean = 1e3 * psum / area if area > 0 else 0.0
         p1 = _to_p1(pressure, mesh, ())
         pv = _node_values(p1, mesh)[:, 0][nodes]

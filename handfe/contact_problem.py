@@ -273,11 +273,13 @@ class RigidContact:
         self.u_ref.x.array[:] += shift.reshape(-1)
         self.u_ref.x.scatter_forward()
 
-    def metrics(self, axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))) -> ContactMetrics:
-        """Contact outputs of the surface (forces N, area mm^2, pressures kPa)."""
+    def metrics(self, axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+                symmetry_normal=None) -> ContactMetrics:
+        """Contact outputs of the surface (forces N, area mm^2, pressures kPa); for a half
+        model (``symmetry_normal``) those of the whole body (:func:`contact_metrics`)."""
         return contact_metrics(self.problem.displacement(), self.obstacle,
                                self.translation.value, self.facet_tags, self.tag,
                                gap_tol_mm=self.gap_tol_mm, pressure=self.terms.pressure,
                                tangential_traction=self.terms.tangential_traction, axes=axes,
-                               comm=self.problem.comm,
+                               comm=self.problem.comm, symmetry_normal=symmetry_normal,
                                metadata=VERTEX_RULE if self.quadrature == "vertex" else None)

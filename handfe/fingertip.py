@@ -33,6 +33,9 @@ default)
   linear elastic (E = 170 MPa) in the solver. Where the dorsal side is too thin for the nail
   plus 0.3 mm of tissue over the bone (subject S3: 0.6 mm), the nail is thinned to fit
   (S3: 0.3 mm; ``FingertipGeometry.nail_thickness_mm`` holds the value used).
+* Half model (``half=True``): the geometry is symmetric about the sagittal plane y = 0, and so
+  is the plate load (its normal lies in that plane), so only y >= 0 is meshed and the face
+  y = 0 is tagged ``symmetry`` (the scene holds u_y = 0 there and doubles forces and areas).
 * Soft tissue: homogeneous ("pulp") or layered: a skin layer of ``skin_thickness_mm`` (the
   bi-ellipsoid with all semi-axes reduced by the thickness: exact on the principal axes) over
   "subcutaneous" tissue.
@@ -40,7 +43,8 @@ default)
 Tags (``FingertipMesh.tags``: name -> id): cells ``pulp`` (1) or ``skin`` (2) +
 ``subcutaneous`` (3), ``nail`` (4); facets ``pad`` (11: outer palmar skin, z <= 0, where the
 plate touches), ``dorsal`` (12: outer dorsal skin), ``nail_outer`` (13), ``bone`` (14: the
-cavity surface), ``proximal`` (15: the cut face at x = 0). The mesh is linear (P2 fields are
+cavity surface), ``proximal`` (15: the cut face at x = 0) and, for a half model, ``symmetry``
+(16: the face y = 0). The mesh is linear (P2 fields are
 made in dolfinx on it), refined on the pad; gmsh runs on rank 0 only.
 """
 
@@ -62,6 +66,7 @@ ANTHROPOMETRY_CSV = REFERENCE_DIR / "fingertip_anthropometry.csv"
 
 CELL_TAGS = {"pulp": 1, "skin": 2, "subcutaneous": 3, "nail": 4}
 FACET_TAGS = {"pad": 11, "dorsal": 12, "nail_outer": 13, "bone": 14, "proximal": 15}
+SYMMETRY_TAG = 16  # the cut face y = 0 of a half model (``half=True``)
 
 # global element size / size on the pad (mm) per level. "coarse" is for fast end-to-end tests of
 # other modules (a 1-2 N solve in well under a minute); it is NOT validated (docs/contact.md).
@@ -285,6 +290,7 @@ class FingertipMesh:
     h_pad_mm: float = 0.0
     layered: bool = False
     skin_thickness_mm: float = 0.0
+    half: bool = False
 
 
 def mesh_sizes(level: str = "default", h_mm: float | None = None) -> tuple[float, float]:
@@ -359,7 +365,7 @@ def _bone(occ, g: FingertipGeometry) -> list:
 
 
 def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
-                 skin_t: float) -> dict[str, list[int]]:
+                 skin_t: float, half: bool = False) -> dict[str, list[int]]:
     import gmsh
 
     occ = gmsh.model.occ
@@ -377,15 +383,20 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
     tools = bone + ntool
     if layered:
         tools.append((3, _bi_ellipsoid(occ, g, skin_t)))
+    if half:  # everything at y < 0 goes (its pieces are dropped below)
+        W = g.half_width_mm
+        tools.append((3, occ.addBox(-2, -W - 2, -g.palmar_depth_mm - 2, L + 4, W + 2,
+                                    g.palmar_depth_mm + g.dorsal_height_mm + 4)))
     out, omap = occ.fragment([(3, body)], tools)
     children = [{t for (d, t) in m if d == 3} for m in omap]
     nb = len(bone)
     in_body = children[0]
     in_bone = set().union(*children[1:1 + nb])
     in_nail = set().union(*children[1 + nb:1 + nb + len(ntool)])
-    in_inner = children[-1] if layered else set()
+    in_inner = children[1 + nb + len(ntool)] if layered else set()
+    in_cut = children[-1] if half else set()
     all_v = {t for (d, t) in out if d == 3}
-    drop = sorted((all_v - in_body) | in_bone)
+    drop = sorted((all_v - in_body) | in_bone | in_cut)
     occ.remove([(3, t) for t in drop], recursive=True)
     occ.synchronize()
     keep = all_v - set(drop)
@@ -405,6 +416,8 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
     # piece lies on (OCC bounding boxes of curved faces are far too loose to use)
     wb, hb = 0.5 * g.wp_mm, 0.5 * g.hp_mm
     fgroups: dict[str, list[int]] = {k: [] for k in FACET_TAGS}
+    if half:
+        fgroups["symmetry"] = []
     for _, s in gmsh.model.getEntities(2):
         up, _ = gmsh.model.getAdjacencies(2, s)
         if len(up) != 1:
@@ -414,7 +427,9 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
         com = occ.getCenterOfMass(2, s)
         xb = max(px - g.bone_cap_x_mm, 0.0) / g.bone_cap_length_mm
         on_bone = abs(xb**2 + (py / wb) ** 2 + ((pz - g.bone_z_mm) / hb) ** 2 - 1) < 1e-5
-        if abs(px) < 1e-7 and abs(com[0]) < 1e-7:
+        if half and abs(py) < 1e-7 and abs(com[1]) < 1e-7:
+            fgroups["symmetry"].append(s)
+        elif abs(px) < 1e-7 and abs(com[0]) < 1e-7:
             fgroups["proximal"].append(s)
         elif on_bone:
             fgroups["bone"].append(s)
@@ -427,11 +442,12 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
     for name, vols in groups.items():
         gmsh.model.addPhysicalGroup(3, vols, CELL_TAGS[name])
         gmsh.model.setPhysicalName(3, CELL_TAGS[name], name)
+    ftags = {**FACET_TAGS, "symmetry": SYMMETRY_TAG}
     for name, surfs in fgroups.items():
         if not surfs:
             raise RuntimeError(f"fingertip mesh: no surface classified as {name!r}")
-        gmsh.model.addPhysicalGroup(2, surfs, FACET_TAGS[name])
-        gmsh.model.setPhysicalName(2, FACET_TAGS[name], name)
+        gmsh.model.addPhysicalGroup(2, surfs, ftags[name])
+        gmsh.model.setPhysicalName(2, ftags[name], name)
     # sizes: h everywhere, h_pad on the pad (growing to h over 3 mm), the nail thickness
     # resolved by elements no larger than 2x the nail thickness near the nail
     fld = gmsh.model.mesh.field
@@ -476,12 +492,14 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
 
 def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
                          h_mm: float | None = None, layered: bool = False,
-                         skin_thickness_mm: float = 1.0, comm=None) -> FingertipMesh:
+                         skin_thickness_mm: float = 1.0, half: bool = False,
+                         comm=None) -> FingertipMesh:
     """Mesh the fingertip with gmsh (rank 0) and distribute it over ``comm``.
 
     level: coarse | reduced | default | fine (global/pad sizes in MESH_LEVELS, mm); h_mm
     overrides the level (pad size 0.6 h_mm). layered: skin (skin_thickness_mm) over
-    subcutaneous tissue instead of one "pulp" volume."""
+    subcutaneous tissue instead of one "pulp" volume. half: only y >= 0, the face y = 0 tagged
+    ``symmetry`` (module docstring)."""
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD if comm is None else comm
@@ -499,7 +517,7 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add(f"fingertip_{geom.subject}")
         try:
-            _build_model(geom, h, h_pad, layered, skin_thickness_mm)
+            _build_model(geom, h, h_pad, layered, skin_thickness_mm, half)
         except Exception as e:  # reported on every rank below
             err = f"{type(e).__name__}: {e}"
     err = comm.bcast(err, root=0)
@@ -517,6 +535,8 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
     tags = {k: v for k, v in CELL_TAGS.items()
             if (k in ("skin", "subcutaneous")) == layered or k == "nail"}
     tags.update(FACET_TAGS)
+    if half:
+        tags["symmetry"] = SYMMETRY_TAG
     n_local = msh.topology.index_map(3).size_local
     counts = {}
     for k in tags:
@@ -528,4 +548,5 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
                          num_cells=msh.topology.index_map(3).size_global, num_vertices=nv,
                          cells_per_tag=counts, meshing_time_s=float(t_mesh), h_mm=h,
                          h_pad_mm=h_pad, layered=layered,
-                         skin_thickness_mm=float(skin_thickness_mm) if layered else 0.0)
+                         skin_thickness_mm=float(skin_thickness_mm) if layered else 0.0,
+                         half=half)

@@ -33,7 +33,11 @@ class FingertipConfig:
     :class:`~handfe.contact_problem.RigidContact`), ``augmented_friction`` with the stick spring
     ``stick_ratio`` x k_n and stick creep <= ``stick_tol_mm``; during the force march the
     multipliers are converged to ``march_tol_factor`` x the tolerances only (the full ones
-    from 85 % of the target force on)."""
+    from 85 % of the target force on).
+
+    ``half_model``: fingertip and plate load are symmetric about the sagittal plane y = 0, so
+    only y >= 0 is meshed, with u_y = 0 on that face; every reported number (forces, areas,
+    extents, reactions) is the whole fingertip's. The fields written are the half."""
 
     subject: str = "mean"
     angle_deg: float = 15.0
@@ -57,6 +61,7 @@ class FingertipConfig:
     gap_tol_mm: float = 0.01
     penetration_tol_mm: float = 0.01
     nail_E_MPa: float = 170.0
+    half_model: bool = True
 
     def __post_init__(self) -> None:
         if not (0.0 <= self.angle_deg <= 90.0) or not math.isfinite(self.angle_deg):
@@ -144,6 +149,7 @@ class FingertipResult:
     mesh: str
     element: str
     material: dict[str, Any]
+    half_model: bool = False
     sweep: list[dict[str, float]] = field(default_factory=list)
 
 
@@ -167,7 +173,8 @@ class FingertipCompression:
         self.geom = fingertip_geometry(cfg.subject)
         self.fm = build_fingertip_mesh(self.geom, level=cfg.mesh, h_mm=cfg.h_mm,
                                        layered=cfg.layered,
-                                       skin_thickness_mm=cfg.skin_thickness_mm, comm=self.comm)
+                                       skin_thickness_mm=cfg.skin_thickness_mm,
+                                       half=cfg.half_model, comm=self.comm)
         self.mesh_s = time.perf_counter() - t0
         tags = self.fm.tags
         pulp = cfg.material or default_material()
@@ -185,6 +192,10 @@ class FingertipCompression:
                                            disc=Discretisation(cfg.element))
         self.bone_facets = self.fm.facet_tags.find(tags["bone"])
         self.problem.fix(self.bone_facets)
+        # half model: the whole fingertip's numbers are the half's mirrored (x 2, no y part)
+        self.symmetry_normal = (0.0, 1.0, 0.0) if cfg.half_model else None
+        if cfg.half_model:
+            self.problem.fix(self.fm.facet_tags.find(tags["symmetry"]), components=(1,))
         self.plate = C.plate(cfg.angle_deg)
         self.n_plate = np.array(self.plate.normal, dtype=float)
         self.contact = RigidContact(self.problem, self.plate, self.fm.facet_tags, tags["pad"],
@@ -229,11 +240,23 @@ class FingertipCompression:
         self.contact.translation.value = self.n_plate * (self.g0 + d)
 
     def plate_force(self) -> float:
-        """Normal force of the plate on the finger (N): int p da over the pad."""
+        """Normal force of the plate on the finger (N): int p da over the pad (x 2 for a half
+        model)."""
         from dolfinx import fem
         from mpi4py import MPI
 
-        return self.comm.allreduce(fem.assemble_scalar(self._force_form), op=MPI.SUM)
+        f = self.comm.allreduce(fem.assemble_scalar(self._force_form), op=MPI.SUM)
+        return 2.0 * f if self.cfg.half_model else f
+
+    def metrics(self):
+        """Contact metrics of the pad (:class:`~handfe.contact.ContactMetrics`), the whole
+        fingertip's also for a half model."""
+        return self.contact.metrics(axes=self.axes(), symmetry_normal=self.symmetry_normal)
+
+    def bone_reaction(self) -> np.ndarray:
+        """Force of the bone support on the tissue (N), the whole fingertip's."""
+        R = self.problem.reaction(self.bone_facets)
+        return 2.0 * R * np.array([1.0, 0.0, 1.0]) if self.cfg.half_model else R
 
     # -- loading ------------------------------------------------------------------------------
     def _snapshot(self):
@@ -410,8 +433,8 @@ class FingertipCompression:
         return (math.cos(th), 0.0, math.sin(th)), (0.0, 1.0, 0.0)
 
     def result(self, wall_s: float) -> FingertipResult:
-        m = self.contact.metrics(axes=self.axes())
-        R = self.problem.reaction(self.bone_facets)
+        m = self.metrics()
+        R = self.bone_reaction()
         its = sum(r.total_newton_iterations for r in self.results)
         steps = sum(r.load_steps for r in self.results)
         ups = sum(sum(r.augment_iterations) for r in self.results)
@@ -428,7 +451,7 @@ class FingertipCompression:
             cells=self.fm.num_cells, wall_s=wall_s, solve_s=solve_s, mesh_s=self.mesh_s,
             angle_deg=self.cfg.angle_deg, subject=self.cfg.subject,
             mesh=self.cfg.mesh if self.cfg.h_mm is None else f"h={self.cfg.h_mm:g}",
-            element=self.cfg.element,
+            element=self.cfg.element, half_model=self.cfg.half_model,
             material={"law": mat.law, **{k: (list(v) if isinstance(v, tuple) else v)
                                          for k, v in asdict(mat).items()}})
 
@@ -459,7 +482,8 @@ class FingertipCompression:
         pad = self.fm.facet_tags.find(self.fm.tags["pad"])
         pad_pressure_png(self.fm.mesh, pad, self._u1, self._p1, self.axes(), path,
                          title=f"fingertip, plate at {self.cfg.angle_deg:g} deg, "
-                               f"{self.plate_force():.2f} N")
+                               f"{self.plate_force():.2f} N",
+                         symmetry_normal=self.symmetry_normal)
 
 
 def run(cfg: FingertipConfig, *, force_N: float | None = None, indent_mm: float | None = None,
@@ -477,7 +501,7 @@ def run(cfg: FingertipConfig, *, force_N: float | None = None, indent_mm: float 
 
     def on_point(d: float) -> None:
         if sweep:
-            m = scene.contact.metrics(axes=scene.axes())
+            m = scene.metrics()
             points.append({"deflection_mm": d, "force_N": scene.plate_force(),
                            "contact_area_mm2": m.contact_area_mm2,
                            "contact_length_mm": m.length_mm, "contact_width_mm": m.width_mm,

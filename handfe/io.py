@@ -87,12 +87,21 @@ def surface_triangles(msh, facets: np.ndarray, fields: Sequence[Any]) -> tuple[n
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(1 + len(fields)))
 
 
-def pad_pressure_png(msh, facets, u1, p1, axes, path: Path, *, title: str = "") -> None:
+def pad_pressure_png(msh, facets, u1, p1, axes, path: Path, *, title: str = "",
+                     symmetry_normal=None) -> None:
     """Contact pressure (kPa, ``p1``: P1 Function) on the deformed surface ``facets``, projected
-    on the plane spanned by ``axes`` (e.g. the plate plane), with a colour bar. Collective."""
+    on the plane spanned by ``axes`` (e.g. the plate plane), with a colour bar. A half model
+    (``symmetry_normal``: its plane through the origin) is drawn with its mirror image.
+    Collective."""
     X, U, P = surface_triangles(msh, facets, [u1, p1])
     if msh.comm.rank != 0:
         return
+    if symmetry_normal is not None:
+        e = np.asarray(symmetry_normal, dtype=float) / np.linalg.norm(symmetry_normal)
+        x = X + U
+        X = np.concatenate([x, x - 2.0 * (x @ e)[..., None] * e])
+        U = np.zeros_like(X)
+        P = np.concatenate([P, P])
     import matplotlib
 
     matplotlib.use("Agg")

@@ -11,6 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from handfe.contact import HalfSpace, contact_metrics, ufl_contact_terms
+from handfe.errors import InputError
 
 A, B, S = 0.1, 0.05, 0.2
 C = S / 6.0  # pressure kink at X1 = 2/3, a mesh line: force integrals are exact
@@ -93,6 +94,27 @@ def test_metrics_plate_analytic_mpi():
     # every rank holds the reduced result
     assert comm.allreduce(m.contact_area_mm2, op=MPI.MAX) == comm.allreduce(
         m.contact_area_mm2, op=MPI.MIN)
+
+
+def test_metrics_of_a_half_model_are_the_whole_bodys():
+    """symmetry_normal = y: the box is the half Y >= 0 of the body -1 <= Y <= 1 (u_y = B Y is
+    odd, the rest even in Y): area, force and the extent across the plane double, the centroid
+    moves onto the plane, length, pressures and penetration stay."""
+    ref = _analytic()
+    m = _metrics(MPI.COMM_SELF, symmetry_normal=(0.0, 1.0, 0.0))
+    assert m.contact_area_mm2 == pytest.approx(2 * ref["area"], rel=1e-12)
+    assert m.length_mm == pytest.approx(ref["length"], rel=1e-12)
+    assert m.width_mm == pytest.approx(2 * ref["width"], rel=1e-12)
+    cx, _, cz = ref["centroid"]
+    np.testing.assert_allclose(m.centroid_mm, (cx, 0.0, cz), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(m.force_vector_N, [0.0, 0.0, -2 * ref["force"]], atol=1e-12)
+    assert m.normal_force_N == pytest.approx(2 * ref["force"], rel=1e-10)
+    assert m.mean_pressure_kPa == pytest.approx(ref["mean_kPa"], rel=1e-10)
+    assert m.peak_pressure_kPa == pytest.approx(ref["peak_kPa"], rel=1e-12)
+    assert m.max_penetration_mm == pytest.approx(ref["pen"], rel=1e-12)
+    with pytest.raises(InputError, match="symmetry plane"):
+        _metrics(MPI.COMM_SELF, symmetry_normal=(0.0, 1.0, 0.0),
+                 axes=((1.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
 
 
 def test_area_continuous_in_plate_position():

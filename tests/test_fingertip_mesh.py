@@ -178,6 +178,35 @@ def test_layered_volumes(fm_layered, geom):
     assert v_sub == pytest.approx(g.outer_volume_mm3(1.0) - g.bone_volume_mm3(), rel=0.03)
 
 
+def _surface_area(fmesh, name):
+    t = _facets(fmesh, name)  # gathered from all ranks
+    return float(0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]),
+                                      axis=1).sum())
+
+
+@pytest.mark.mpi
+def test_half_model_is_half_of_the_fingertip(fm, geom):
+    """half=True: y >= 0 only, the cut face y = 0 tagged ``symmetry``, volumes and surfaces
+    half of the whole fingertip's (within the chord error of two different meshes)."""
+    from handfe.fingertip import SYMMETRY_TAG
+
+    half = build_fingertip_mesh(geom, level="reduced", half=True, comm=MPI.COMM_WORLD)
+    assert half.half and half.tags["symmetry"] == SYMMETRY_TAG
+    comm = half.mesh.comm
+    y = half.mesh.geometry.x[:, 1]
+    assert comm.allreduce(float(y.min(initial=0.0)), op=MPI.MIN) >= -1e-9
+    sym = _facets(half, "symmetry")
+    assert np.abs(sym[..., 1]).max() < 1e-9
+    # the cut face is the sagittal section of the tissue (body minus bone, at x >= 0)
+    assert _surface_area(half, "symmetry") > 100.0
+    for name in ("pulp", "nail"):
+        assert _cell_volumes(half, name) == pytest.approx(0.5 * _cell_volumes(fm, name),
+                                                          rel=0.02), name
+    for name in FACET_TAGS:
+        assert _surface_area(half, name) == pytest.approx(0.5 * _surface_area(fm, name),
+                                                          rel=0.02), name
+
+
 @pytest.mark.mpi
 def test_mpi_same_mesh_as_serial(fm):
     """The distributed mesh is the serial one: same global counts and tagged volumes."""

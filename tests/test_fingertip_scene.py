@@ -36,16 +36,37 @@ def test_force_control_outputs(tmp_path):
 
 def test_frictionless_global_equilibrium():
     """Reaction on the rigid bone + contact force of the plate = 0 (frictionless: the plate
-    force is p n da only)."""
+    force is p n da only), for the half model (the default; both mirrored to the whole
+    fingertip, the symmetry plane carries only y forces)."""
     sc = FingertipCompression(FingertipConfig(**COARSE, friction=0.0), comm=MPI.COMM_SELF)
     sc.push_to_deflection(1.5)
-    m = sc.contact.metrics(axes=sc.axes())
-    R = sc.problem.reaction(sc.bone_facets)
+    assert sc.cfg.half_model
+    m = sc.metrics()
+    R = sc.bone_reaction()
     F = np.array(m.force_vector_N)
     assert m.max_penetration_mm <= 0.01 + 1e-12
     assert np.linalg.norm(R + F) <= 1e-6 * np.linalg.norm(F)
     # the plate pushes along its normal
     assert np.dot(F, sc.n_plate) == pytest.approx(np.linalg.norm(F), rel=1e-9)
+
+
+def test_half_model_matches_full():
+    """The half model (u_y = 0 on y = 0) gives the whole fingertip's force, area, extents and
+    deflection: same plate travel, within the difference of two h = 3 mm meshes."""
+    out = {}
+    for half in (True, False):
+        sc = FingertipCompression(FingertipConfig(**COARSE, friction=0.0, half_model=half),
+                                  comm=MPI.COMM_SELF)
+        sc.push_to_deflection(1.5)
+        m = sc.metrics()
+        out[half] = (sc.plate_force(), m.contact_area_mm2, m.width_mm, m.length_mm,
+                     m.centroid_mm[1], sc.problem.num_dofs())
+    (fh, ah, wh, lh, yh, nh), (ff, af, wf, lf, _, nf) = out[True], out[False]
+    assert fh == pytest.approx(ff, rel=0.05)
+    assert ah == pytest.approx(af, rel=0.05)
+    assert wh == pytest.approx(wf, rel=0.05) and lh == pytest.approx(lf, rel=0.05)
+    assert yh == pytest.approx(0.0, abs=1e-12)
+    assert nh < 0.6 * nf
 
 
 @pytest.mark.mpi
@@ -55,7 +76,7 @@ def test_two_ranks_equal_one():
     for comm in (MPI.COMM_WORLD, MPI.COMM_SELF):
         sc = FingertipCompression(cfg, comm=comm)
         sc.push_to_deflection(1.5)
-        out.append((sc.plate_force(), sc.contact.metrics(axes=sc.axes()).contact_area_mm2))
+        out.append((sc.plate_force(), sc.metrics().contact_area_mm2))
     assert out[0][0] == pytest.approx(out[1][0], rel=1e-6)
     assert out[0][1] == pytest.approx(out[1][1], rel=1e-6)
 

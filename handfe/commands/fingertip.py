@@ -45,6 +45,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    default="taylor-hood",
                    help="FE element (default taylor-hood P2-P1 mixed; p1-p0 = P1 + DG0 pressure, "
                         "cheap; p1 locks, for comparison)")
+    p.add_argument("--model", choices=("half", "full"), default="half",
+                   help="half (default): mesh only y >= 0 and hold u_y = 0 on the sagittal "
+                        "symmetry plane (exact: geometry and plate load are symmetric; half the "
+                        "dofs); every reported number "
+                        "is the whole fingertip's, the fields are the half (ParaView: Reflect). "
+                        "full: the whole fingertip")
     p.add_argument("--subject", default="mean",
                    help="anthropometry row: mean (default) or S1..S5")
     p.add_argument("--material", default=None, metavar="NAME",
@@ -109,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
                           h_mm=args.h, element=args.element,
                           material=material_from_name(args.material), layered=args.layered,
                           skin_thickness_mm=args.skin_thickness, friction=args.friction,
-                          gap_tol_mm=args.gap_tol)
+                          gap_tol_mm=args.gap_tol, half_model=args.model == "half")
     out = Path(args.out)
     progress = None if args.quiet else (lambda s: rprint(s))
     what = f"{args.force:g} N" if args.force is not None else f"{args.indent:g} mm"
