@@ -51,9 +51,12 @@ made in dolfinx on it), refined on the pad; gmsh runs on rank 0 only.
 from __future__ import annotations
 
 import csv
+import hashlib
+import json
 import math
+import os
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -291,6 +294,24 @@ class FingertipMesh:
     layered: bool = False
     skin_thickness_mm: float = 0.0
     half: bool = False
+    from_cache: bool = False
+
+
+def mesh_cache_path(geom: FingertipGeometry, h: float, h_pad: float, layered: bool,
+                    skin_t: float, half: bool) -> Path | None:
+    """Where the gmsh mesh of these inputs is cached (``$HANDFE_CACHE_DIR`` or
+    ``~/.cache/handfe``, under ``meshes/``), None if ``HANDFE_MESH_CACHE=0``. The key hashes the
+    inputs, the gmsh version and this module's source, so a change to the mesher misses."""
+    if os.environ.get("HANDFE_MESH_CACHE", "1") == "0":
+        return None
+    import gmsh
+
+    root = Path(os.environ.get("HANDFE_CACHE_DIR") or Path.home() / ".cache" / "handfe")
+    key = json.dumps([asdict(geom), h, h_pad, layered, skin_t if layered else 0.0, half,
+                      getattr(gmsh, "__version__", ""),
+                      hashlib.sha256(Path(__file__).read_bytes()).hexdigest()],
+                     sort_keys=True, default=str)
+    return root / "meshes" / f"fingertip-{hashlib.sha256(key.encode()).hexdigest()[:20]}.msh"
 
 
 def mesh_sizes(level: str = "default", h_mm: float | None = None) -> tuple[float, float]:
@@ -507,6 +528,7 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
     if layered and not (0.2 <= skin_thickness_mm <= 3.0):
         raise InputError(f"skin_thickness_mm must be within 0.2..3 mm, got {skin_thickness_mm!r}")
     err = None
+    cached = False
     t0 = time.perf_counter()
     if comm.rank == 0:
         import gmsh
@@ -515,12 +537,22 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
 
         ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add(f"fingertip_{geom.subject}")
+        # the OCC booleans take ~5-8 s whatever the size (the meshing itself < 1 s at
+        # default): a mesh made once is read back from the cache
+        path = mesh_cache_path(geom, h, h_pad, layered, skin_thickness_mm, half)
         try:
-            _build_model(geom, h, h_pad, layered, skin_thickness_mm, half)
+            if path is not None and path.exists():
+                gmsh.open(str(path))
+                cached = True
+            else:
+                gmsh.model.add(f"fingertip_{geom.subject}")
+                _build_model(geom, h, h_pad, layered, skin_thickness_mm, half)
+                if path is not None:
+                    _write_atomically(gmsh, path)
         except Exception as e:  # reported on every rank below
             err = f"{type(e).__name__}: {e}"
     err = comm.bcast(err, root=0)
+    cached = comm.bcast(cached, root=0)
     if err is not None:
         if comm.rank == 0:
             release_gmsh(gmsh)
@@ -549,4 +581,17 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
                          cells_per_tag=counts, meshing_time_s=float(t_mesh), h_mm=h,
                          h_pad_mm=h_pad, layered=layered,
                          skin_thickness_mm=float(skin_thickness_mm) if layered else 0.0,
-                         half=half)
+                         half=half, from_cache=cached)
+
+
+def _write_atomically(gmsh, path: Path) -> None:
+    """Write the current gmsh mesh to ``path`` via a temporary file and a rename (concurrent
+    runs never read a half-written file); a cache that cannot be written is skipped."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.{os.getpid()}.msh")
+        gmsh.option.setNumber("Mesh.Binary", 1)
+        gmsh.write(str(tmp))
+        os.replace(tmp, path)
+    except OSError:
+        pass
