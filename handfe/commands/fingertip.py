@@ -9,6 +9,9 @@ A rigid plate at ANGLE degrees to the finger axis is pushed against the pad of a
 fingertip (geometry from reference/fingertip_anthropometry.csv; distal phalanx rigid and fixed,
 nail linear elastic E = 170 MPa, soft tissue hyperelastic, near-incompressible, Taylor-Hood P2-P1
 by default). Contact: augmented Lagrangian, penetration <= 0.01 mm at the end, Coulomb friction.
+By default only half the fingertip is solved (sagittal symmetry plane, u_y = 0 there); all
+reported numbers are the whole fingertip's. The gmsh mesh is cached in ~/.cache/handfe/meshes
+(HANDFE_CACHE_DIR to move it, HANDFE_MESH_CACHE=0 to bypass).
 
 Writes into --out:
   summary.json   force_N, deflection_mm (plate travel after first contact), contact_area_mm2
@@ -16,7 +19,8 @@ Writes into --out:
                  (extent along / across the finger axis in the plate plane), mean_pressure_kPa,
                  peak_pressure_kPa, max_penetration_mm, load_steps, newton_iterations, dofs,
                  wall_s, and the material used
-  fields.xdmf    displacement (mm) and contact pressure (kPa) for ParaView
+  fields.xdmf    displacement (mm) and contact pressure (kPa) for ParaView (with the default
+                 --model half: the half y >= 0; use ParaView's Reflect filter, plane Y)
   pressure.png   contact pressure on the pad seen through the plate, colour bar in kPa
   sweep.csv      with --sweep: force, area, length, width, peak pressure at every load step
 
