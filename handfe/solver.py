@@ -254,6 +254,24 @@ class HyperelasticProblem:
 
 
 # ------------------------------------------------------------------------------------------------
+def lift_unless_satisfied(b: PETSc.Vec, a_forms: list, bcs: list, x: PETSc.Vec,
+                          work: PETSc.Vec) -> bool:
+    """``apply_lifting(b, a_forms, bcs, x0=x, scale=-1)`` unless the iterate ``x`` already holds
+    every Dirichlet value, where the lifting adds exactly zero but still computes the element
+    matrices of every cell touching a constrained dof (measured: ~75 % of a residual
+    evaluation of the fingertip). Newton keeps satisfied values exactly (zero residual and
+    identity rows there), so only the first iteration after the values change lifts.
+    ``work`` is a vector of b's layout. Collective; returns whether it lifted."""
+    with work.localForm() as w:
+        w.set(0.0)
+    fem_petsc.set_bc(work, bcs, x, -1.0)  # x - g on the constrained owned dofs
+    if work.norm(PETSc.NormType.NORM_INFINITY) == 0.0:
+        return False
+    fem_petsc.apply_lifting(b, a_forms, bcs=[bcs] * len(a_forms), x0=[x] * len(a_forms),
+                            scale=-1.0)
+    return True
+
+
 @dataclass(frozen=True)
 class NewtonOptions:
     """Newton (PETSc SNES) settings. Converged when ||R|| <= max(atol, rtol ||R_0||).
@@ -332,6 +350,7 @@ class NewtonSolver:
         self.b = fem_petsc.create_vector(L)
         self.A = fem_petsc.create_matrix(a)
         self.x = self.b.duplicate()
+        self._work = self.b.duplicate()
         self.snes = PETSc.SNES().create(problem.comm)
         self.prefix = f"handfe_{next(_prefix_counter)}_"
         self.snes.setOptionsPrefix(self.prefix)
@@ -359,7 +378,7 @@ class NewtonSolver:
         with b.localForm() as bl:
             bl.set(0.0)
         fem_petsc.assemble_vector(b, self._L)
-        fem_petsc.apply_lifting(b, [self._a], bcs=[self.problem.bcs], x0=[x], scale=-1.0)
+        lift_unless_satisfied(b, [self._a], self.problem.bcs, x, self._work)
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         fem_petsc.set_bc(b, self.problem.bcs, x, -1.0)
 
@@ -385,7 +404,7 @@ class NewtonSolver:
                                                                                   str(reason))
 
     def destroy(self) -> None:
-        for obj in (self.snes, self.A, self.b, self.x):
+        for obj in (self.snes, self.A, self.b, self.x, self._work):
             obj.destroy()
 
 

@@ -21,7 +21,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
-from handfe.solver import Discretisation
+from handfe.solver import Discretisation, lift_unless_satisfied
 
 SKIN, SUBCUT, NAIL = 1, 2, 3
 # Brezzi-Pitkaranta weight of the equal-order pressure stabilisation (element "p1-p1s"): chosen on
@@ -193,6 +193,7 @@ class TwoFormNewton:
         self.b = fem_petsc.create_vector(self.L[0])
         self.A = fem_petsc.create_matrix(self.a[0])
         self.x = self.b.duplicate()
+        self._work = self.b.duplicate()
         self.history: list[float] = []
         # backtracking by default; "basic" (full Newton steps) as the fallback where the
         # backtracking stalls at a kink of the contact law (semi-smooth residual)
@@ -234,7 +235,7 @@ class TwoFormNewton:
             bl.set(0.0)
         for L in self.L:
             fem_petsc.assemble_vector(b, L)
-        fem_petsc.apply_lifting(b, self.a, bcs=[p.bcs, p.bcs], x0=[x, x], scale=-1.0)
+        lift_unless_satisfied(b, self.a, p.bcs, x, self._work)
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         fem_petsc.set_bc(b, p.bcs, x, -1.0)
 
@@ -320,7 +321,7 @@ class TwoFormNewton:
         return K
 
     def destroy(self) -> None:
-        for o in (*self._snes.values(), self.A, self.b, self.x):
+        for o in (*self._snes.values(), self.A, self.b, self.x, self._work):
             o.destroy()
 
 
