@@ -50,6 +50,7 @@ made in dolfinx on it), refined on the pad; gmsh runs on rank 0 only.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import hashlib
 import json
@@ -540,11 +541,18 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
         # the OCC booleans take ~5-8 s whatever the size (the meshing itself < 1 s at
         # default): a mesh made once is read back from the cache
         path = mesh_cache_path(geom, h, h_pad, layered, skin_thickness_mm, half)
-        try:
-            if path is not None and path.exists():
+        if path is not None and path.exists():
+            try:
                 gmsh.open(str(path))
                 cached = True
-            else:
+            except Exception:  # unreadable cache file: drop it and mesh afresh
+                with contextlib.suppress(OSError):
+                    path.unlink(missing_ok=True)
+                release_gmsh(gmsh)
+                ensure_gmsh(gmsh)
+                gmsh.option.setNumber("General.Terminal", 0)
+        try:
+            if not cached:
                 gmsh.model.add(f"fingertip_{geom.subject}")
                 _build_model(geom, h, h_pad, layered, skin_thickness_mm, half)
                 if path is not None:

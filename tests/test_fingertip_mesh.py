@@ -209,7 +209,8 @@ def test_half_model_is_half_of_the_fingertip(fm, geom):
 
 def test_mesh_cache_gives_the_same_mesh(geom, tmp_path, monkeypatch):
     """A mesh made once is read back from the cache (HANDFE_CACHE_DIR) identically: same
-    vertices, cells and tags; other inputs miss; HANDFE_MESH_CACHE=0 bypasses it."""
+    vertices, cells and tags; an unreadable file is meshed afresh; other inputs miss;
+    HANDFE_MESH_CACHE=0 bypasses it."""
     monkeypatch.setenv("HANDFE_CACHE_DIR", str(tmp_path))
     a = build_fingertip_mesh(geom, level="coarse", half=True, comm=MPI.COMM_SELF)
     b = build_fingertip_mesh(geom, level="coarse", half=True, comm=MPI.COMM_SELF)
@@ -220,6 +221,11 @@ def test_mesh_cache_gives_the_same_mesh(geom, tmp_path, monkeypatch):
     for t in ("cell_tags", "facet_tags"):
         np.testing.assert_array_equal(getattr(a, t).indices, getattr(b, t).indices)
         np.testing.assert_array_equal(getattr(a, t).values, getattr(b, t).values)
+    # an unreadable cache file is replaced by a fresh mesh
+    (f,) = (tmp_path / "meshes").glob("*.msh")
+    f.write_bytes(b"not a mesh")
+    c = build_fingertip_mesh(geom, level="coarse", half=True, comm=MPI.COMM_SELF)
+    assert not c.from_cache and c.num_cells == a.num_cells and f.stat().st_size > 1000
     assert not build_fingertip_mesh(geom, level="coarse", comm=MPI.COMM_SELF).from_cache
     monkeypatch.setenv("HANDFE_MESH_CACHE", "0")
     assert not build_fingertip_mesh(geom, level="coarse", half=True,
