@@ -122,7 +122,10 @@ def fingerprint(study: Study, case: Case) -> str:
                          "parameter": case.parameter, "level_pct": case.level_pct,
                          "tissue_nu": study.refit.tissue_nu}
     if study.kind == "fingertip":
-        d["fingertip"] = asdict(study.fingertip)
+        from handfe.fingertip_scene import FingertipConfig
+
+        # the scene's model (half since Dec 2026): case files of the whole model re-run
+        d["fingertip"] = {**asdict(study.fingertip), "half_model": FingertipConfig().half_model}
     else:
         d["workflow"] = study.workflow_digest()
     if case.parameter in MATERIAL_PARAMETERS:
