@@ -730,6 +730,15 @@ def _clip_patch(x: np.ndarray, phi: np.ndarray, axes: np.ndarray):
     return area, mom, lo, hi
 
 
+def mirrored_total(v, symmetry_normal) -> np.ndarray:
+    """The whole body's value of a vector integral ``v`` over one half of a body symmetric
+    about the plane through the origin with normal ``symmetry_normal``: twice ``v`` with its
+    normal component cancelled (the mirror half adds the reflected vector)."""
+    e = np.asarray(_unit(symmetry_normal, "symmetry_normal"))
+    v = np.asarray(v, dtype=float)
+    return 2.0 * (v - (v @ e) * e)
+
+
 def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
                     gap_tol_mm: float = 0.01, pressure=None, tangential_traction=None,
                     axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)), comm=None,
@@ -787,16 +796,10 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
     mom = np.array([comm.allreduce(float(c), op=MPI.SUM) for c in mom_f.sum(axis=0)])
     lo = np.array([comm.allreduce(float(c), op=MPI.MIN) for c in lo])
     hi = np.array([comm.allreduce(float(c), op=MPI.MAX) for c in hi])
-    mirror = None
     if symmetry_normal is not None:
         e = np.asarray(_unit(symmetry_normal, "symmetry_normal"))
-
-        def mirror(v):  # the whole body's integral of a half's vector integral v
-            v = np.asarray(v, dtype=float)
-            return 2.0 * (v - (v @ e) * e)
-
         area *= 2.0
-        mom = mirror(mom)
+        mom = mirrored_total(mom, e)
         for k in range(2):
             d = float(ax[k] @ e)
             if abs(abs(d) - 1.0) < 1e-9 and hi[k] >= lo[k]:  # across the plane
@@ -832,8 +835,8 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
             vals.append(comm.allreduce(fem.assemble_scalar(form), op=MPI.SUM))
         psum = vals[0]
         fv, tv = np.array(vals[1:4]), np.array(vals[4:7]) if len(vals) > 4 else np.zeros(3)
-        if mirror is not None:
-            psum, fv, tv = 2.0 * psum, mirror(fv), mirror(tv)
+        if symmetry_normal is not None:
+            psum, fv, tv = 2.0 * psum, mirrored_total(fv, e), mirrored_total(tv, e)
         fvec = tuple(float(v) for v in fv)
         fn = float(np.linalg.norm(fvec))
         ft = float(np.linalg.norm(tv)) if tangential_traction is not None else 0.0

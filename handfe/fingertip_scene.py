@@ -255,8 +255,10 @@ class FingertipCompression:
 
     def bone_reaction(self) -> np.ndarray:
         """Force of the bone support on the tissue (N), the whole fingertip's."""
+        from handfe.contact import mirrored_total
+
         R = self.problem.reaction(self.bone_facets)
-        return 2.0 * R * np.array([1.0, 0.0, 1.0]) if self.cfg.half_model else R
+        return R if self.symmetry_normal is None else mirrored_total(R, self.symmetry_normal)
 
     # -- loading ------------------------------------------------------------------------------
     def _snapshot(self):
