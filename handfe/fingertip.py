@@ -50,12 +50,8 @@ made in dolfinx on it), refined on the pad; gmsh runs on rank 0 only.
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import hashlib
-import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -300,19 +296,13 @@ class FingertipMesh:
 
 def mesh_cache_path(geom: FingertipGeometry, h: float, h_pad: float, layered: bool,
                     skin_t: float, half: bool) -> Path | None:
-    """Where the gmsh mesh of these inputs is cached (``$HANDFE_CACHE_DIR`` or
-    ``~/.cache/handfe``, under ``meshes/``), None if ``HANDFE_MESH_CACHE=0``. The key hashes the
-    inputs, the gmsh version and this module's source, so a change to the mesher misses."""
-    if os.environ.get("HANDFE_MESH_CACHE", "1") == "0":
-        return None
-    import gmsh
+    """Where the gmsh mesh of these inputs is cached (:mod:`handfe.meshcache`), None if
+    ``HANDFE_MESH_CACHE=0``. The key hashes the inputs, the gmsh version and this module's
+    source, so a change to the mesher misses."""
+    from handfe.meshcache import cache_path
 
-    root = Path(os.environ.get("HANDFE_CACHE_DIR") or Path.home() / ".cache" / "handfe")
-    key = json.dumps([asdict(geom), h, h_pad, layered, skin_t if layered else 0.0, half,
-                      getattr(gmsh, "__version__", ""),
-                      hashlib.sha256(Path(__file__).read_bytes()).hexdigest()],
-                     sort_keys=True, default=str)
-    return root / "meshes" / f"fingertip-{hashlib.sha256(key.encode()).hexdigest()[:20]}.msh"
+    return cache_path("fingertip", [asdict(geom), h, h_pad, layered,
+                                    skin_t if layered else 0.0, half], [Path(__file__)])
 
 
 def mesh_sizes(level: str = "default", h_mm: float | None = None) -> tuple[float, float]:
@@ -535,28 +525,19 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
         import gmsh
 
         from handfe.anatomy.meshing import ensure_gmsh, release_gmsh
+        from handfe.meshcache import open_cached, write_mesh
 
         ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
         # the OCC booleans take ~5-8 s whatever the size (the meshing itself < 1 s at
         # default): a mesh made once is read back from the cache
         path = mesh_cache_path(geom, h, h_pad, layered, skin_thickness_mm, half)
-        if path is not None and path.exists():
-            try:
-                gmsh.open(str(path))
-                cached = True
-            except Exception:  # unreadable cache file: drop it and mesh afresh
-                with contextlib.suppress(OSError):
-                    path.unlink(missing_ok=True)
-                release_gmsh(gmsh)
-                ensure_gmsh(gmsh)
-                gmsh.option.setNumber("General.Terminal", 0)
+        cached = open_cached(gmsh, path)
         try:
             if not cached:
                 gmsh.model.add(f"fingertip_{geom.subject}")
                 _build_model(geom, h, h_pad, layered, skin_thickness_mm, half)
-                if path is not None:
-                    _write_atomically(gmsh, path)
+                write_mesh(gmsh, path)
         except Exception as e:  # reported on every rank below
             err = f"{type(e).__name__}: {e}"
     err = comm.bcast(err, root=0)
@@ -590,16 +571,3 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
                          h_pad_mm=h_pad, layered=layered,
                          skin_thickness_mm=float(skin_thickness_mm) if layered else 0.0,
                          half=half, from_cache=cached)
-
-
-def _write_atomically(gmsh, path: Path) -> None:
-    """Write the current gmsh mesh to ``path`` via a temporary file and a rename (concurrent
-    runs never read a half-written file); a cache that cannot be written is skipped."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.{os.getpid()}.msh")
-        gmsh.option.setNumber("Mesh.Binary", 1)
-        gmsh.write(str(tmp))
-        os.replace(tmp, path)
-    except OSError:
-        pass
