@@ -13,8 +13,11 @@ Tags (values of the dolfinx meshtags; names in ``HandModel.tags``):
 
 from __future__ import annotations
 
+import contextlib
+import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
@@ -25,6 +28,7 @@ from handfe.anatomy.subject import Anthropometry
 from handfe.anatomy.tables import bones as bone_table
 from handfe.errors import InputError
 from handfe.kinematics import DIGITS, Pose
+from handfe.paths import ANATOMY_DIR
 
 LEVELS = {  # mm: global size, size on the fingertip pads, size on the palm, size far from the
     # kept digits of a partial hand (proximal palm, carpus, wrist)
@@ -603,6 +607,83 @@ def _point_triangles(x: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.linalg.norm(q - x, axis=1), q
 
 
+def hand_cache_path(subject: Anthropometry, pose: Pose, digits: tuple[str, ...], level: str,
+                    skip_far: bool) -> Path | None:
+    """Where the hand mesh of these inputs is cached (:mod:`handfe.meshcache`; None if the
+    cache is off). The key: subject, joint values and pose name, digits, level, skip_far, the
+    gmsh version, the anatomy and kinematics sources and the anatomy tables."""
+    from handfe.meshcache import cache_path
+
+    here = Path(__file__).resolve().parent
+    sources = [*here.glob("*.py"), here.parent / "kinematics.py", *ANATOMY_DIR.glob("*.csv")]
+    key = {"subject": asdict(subject), "pose": sorted(pose.values.items()),
+           "pose_source": pose.source, "digits": list(digits), "level": level,
+           "skip_far": bool(skip_far)}
+    return cache_path("hand", key, sources)
+
+
+def _read_cached_hand(gmsh, path: Path | None) -> tuple[dict | None, str | None]:
+    """(result, None) for a cached mesh (loaded into gmsh), (None, error) for a cached meshing
+    failure, (None, None) on a miss. A cached failure is the gmsh/OCC error of the same
+    inputs (the pinch's fully pre-closed posture fails at the same point every run), so a
+    grasp's retry ladder moves on at once instead of meshing for ~25 s to fail again."""
+    from handfe.meshcache import open_cached
+
+    if path is None:
+        return None, None
+    failed = path.with_suffix(".failed.json")
+    if failed.exists():
+        with contextlib.suppress(OSError, ValueError, KeyError):
+            return None, json.loads(failed.read_text())["error"] + " (cached failure)"
+    side = path.with_suffix(".npz")
+    if not side.exists():
+        return None, None
+    try:
+        with np.load(side, allow_pickle=False) as z:
+            quality = json.loads(str(z["quality"]))
+            # JSON object keys are strings: the facet tags were ints
+            quality["skin_area_by_tag_mm2"] = {
+                int(k): v for k, v in quality.get("skin_area_by_tag_mm2", {}).items()}
+            surface = SurfaceData(z["points"], z["triangles"], z["codes"])
+    except (OSError, ValueError, KeyError):
+        return None, None
+    if not open_cached(gmsh, path):
+        return None, None
+    quality["from_cache"] = True
+    return {"quality": quality, "surface": surface}, None
+
+
+def _cache_hand(gmsh, path: Path | None, result: dict) -> None:
+    """Store the mesh and, next to it, its quality report and outer skin triangles (the .npz is
+    written first: a reader needs both)."""
+    from handfe.meshcache import write_atomically, write_mesh
+
+    if path is None:
+        return
+    surf = result["surface"]
+
+    def write(tmp: Path) -> None:
+        with tmp.open("wb") as fh:
+            np.savez(fh, quality=np.array(json.dumps(result["quality"], default=_plain)),
+                     points=surf.points, triangles=surf.triangles, codes=surf.codes)
+
+    write_atomically(path.with_suffix(".npz"), write)
+    write_mesh(gmsh, path)
+
+
+def _plain(o):
+    """JSON fallback for numpy scalars and arrays."""
+    return o.tolist() if hasattr(o, "tolist") else str(o)
+
+
+def _cache_failure(path: Path | None, error: str) -> None:
+    from handfe.meshcache import write_atomically
+
+    if path is not None:
+        write_atomically(path.with_suffix(".failed.json"),
+                         lambda tmp: tmp.write_text(json.dumps({"error": error})))
+
+
 def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
                digits: str | tuple[str, ...] | None = None, level: str = "reduced",
                comm: MPI.Comm = MPI.COMM_WORLD, skip_far: bool | None = None) -> HandModel:
@@ -636,13 +717,19 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
     if comm.rank == 0:
         ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add("hand")
-        try:
-            result = _mesh_rank0(gmsh, skel, digits, level, skip_far)
-        except InputError as exc:
-            error = str(exc)
-        except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
-            error = f"meshing failed for pose {pose.source}: {exc}"
+        path = hand_cache_path(subject, pose, digits, level, skip_far)
+        result, error = _read_cached_hand(gmsh, path)
+        if result is None and error is None:
+            gmsh.model.add("hand")
+            try:
+                result = _mesh_rank0(gmsh, skel, digits, level, skip_far)
+                _cache_hand(gmsh, path, result)
+            except InputError as exc:
+                error = str(exc)
+            except Exception as exc:  # gmsh/OCC failures: report, do not hang the other ranks
+                error = f"meshing failed for pose {pose.source}: {exc}"
+                if not isinstance(exc, MemoryError | OSError):  # not a property of the inputs
+                    _cache_failure(path, error)
     idle_wait(comm)
     error = comm.bcast(error, root=0)
     if error:

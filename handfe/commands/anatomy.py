@@ -12,7 +12,11 @@ Writes into --out: hand.xdmf (mesh, cell tags skin=1 subcutaneous=2 nail=3, face
 100+10*region+phalanx, bone surfaces 201..227), anatomy.json (bone frames, joints, ligaments,
 tendon insertions in the posed frame), quality.json (cells, quality, dihedral angles, volumes,
 areas, skin thickness, timings, "skipped": dropped digits and bones and the estimated cells
-saved) and hand.png (palmar view, regions coloured).
+saved; "from_cache": true if the mesh was read back) and hand.png (palmar view, regions coloured).
+
+Meshes are cached in ~/.cache/handfe/meshes (HANDFE_CACHE_DIR to move it, HANDFE_MESH_CACHE=0
+to bypass): the same subject, pose, digits and level are meshed once; a gmsh failure is cached
+too and reported at once.
 """
 
 

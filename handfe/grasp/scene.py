@@ -326,6 +326,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         skipped = [d for d in ("thumb", "index", "middle", "ring", "little")
                    if d not in grasp.digits]
         summary["mesh_cells"] = n_cells
+        summary["mesh_from_cache"] = bool(model.quality.get("from_cache", False))
         from_mesh = model.quality.get("skipped")
         summary["skipped"] = {"digits": skipped, **(from_mesh if isinstance(from_mesh, dict)
                                                     else {})}
