@@ -68,6 +68,11 @@ CELL_TAGS = {"pulp": 1, "skin": 2, "subcutaneous": 3, "nail": 4}
 FACET_TAGS = {"pad": 11, "dorsal": 12, "nail_outer": 13, "bone": 14, "proximal": 15}
 SYMMETRY_TAG = 16  # the cut face y = 0 of a half model (``half=True``)
 
+
+def facet_tag_map(half: bool) -> dict[str, int]:
+    """Boundary names -> facet tags of a fingertip mesh (with ``symmetry`` for a half model)."""
+    return {**FACET_TAGS, "symmetry": SYMMETRY_TAG} if half else dict(FACET_TAGS)
+
 # global element size / size on the pad (mm) per level. "coarse" is for fast end-to-end tests of
 # other modules (a 1-2 N solve in well under a minute); it is NOT validated (docs/contact.md).
 MESH_LEVELS = {"coarse": (3.5, 2.0), "reduced": (2.5, 1.5), "default": (1.5, 0.9),
@@ -427,9 +432,8 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
     # boundary surfaces: a point of the underlying surface says which geometric surface a
     # piece lies on (OCC bounding boxes of curved faces are far too loose to use)
     wb, hb = 0.5 * g.wp_mm, 0.5 * g.hp_mm
-    fgroups: dict[str, list[int]] = {k: [] for k in FACET_TAGS}
-    if half:
-        fgroups["symmetry"] = []
+    ftags = facet_tag_map(half)
+    fgroups: dict[str, list[int]] = {k: [] for k in ftags}
     for _, s in gmsh.model.getEntities(2):
         up, _ = gmsh.model.getAdjacencies(2, s)
         if len(up) != 1:
@@ -454,7 +458,6 @@ def _build_model(g: FingertipGeometry, h: float, h_pad: float, layered: bool,
     for name, vols in groups.items():
         gmsh.model.addPhysicalGroup(3, vols, CELL_TAGS[name])
         gmsh.model.setPhysicalName(3, CELL_TAGS[name], name)
-    ftags = {**FACET_TAGS, "symmetry": SYMMETRY_TAG}
     for name, surfs in fgroups.items():
         if not surfs:
             raise RuntimeError(f"fingertip mesh: no surface classified as {name!r}")
@@ -555,9 +558,7 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
         release_gmsh(gmsh)
     tags = {k: v for k, v in CELL_TAGS.items()
             if (k in ("skin", "subcutaneous")) == layered or k == "nail"}
-    tags.update(FACET_TAGS)
-    if half:
-        tags["symmetry"] = SYMMETRY_TAG
+    tags.update(facet_tag_map(half))
     n_local = msh.topology.index_map(3).size_local
     counts = {}
     for k in tags:

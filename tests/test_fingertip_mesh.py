@@ -212,6 +212,7 @@ def test_mesh_cache_gives_the_same_mesh(geom, tmp_path, monkeypatch):
     vertices, cells and tags; an unreadable file is meshed afresh; other inputs miss;
     HANDFE_MESH_CACHE=0 bypasses it."""
     monkeypatch.setenv("HANDFE_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("HANDFE_MESH_CACHE", raising=False)
     a = build_fingertip_mesh(geom, level="coarse", half=True, comm=MPI.COMM_SELF)
     b = build_fingertip_mesh(geom, level="coarse", half=True, comm=MPI.COMM_SELF)
     assert not a.from_cache and b.from_cache
