@@ -276,7 +276,12 @@ def lift_unless_satisfied(b: PETSc.Vec, a_forms: list, bcs: list, x: PETSc.Vec,
 class NewtonOptions:
     """Newton (PETSc SNES) settings. Converged when ||R|| <= max(atol, rtol ||R_0||).
     ``petsc_options`` are passed through (keys without prefix, e.g. {"ksp_type": "gmres",
-    "pc_type": "gamg"}) and override the defaults (direct MUMPS LU)."""
+    "pc_type": "gamg"}) and override the defaults (direct MUMPS LU).
+
+    ``augment_atol`` (with an augmented-Lagrangian ``augment`` in :func:`solve`; None = off):
+    Newton solves stop at this looser absolute tolerance while the multipliers are still being
+    updated (their state is only the start of the next solve); once ``augment`` accepts, the
+    state is converged to ``atol`` and checked again, so the accepted state meets ``atol``."""
 
     rtol: float = 1e-9
     atol: float = 1e-10
@@ -284,6 +289,7 @@ class NewtonOptions:
     linesearch: str = "bt"
     linear_solver: str = "mumps"
     petsc_options: Mapping[str, Any] = field(default_factory=dict)
+    augment_atol: float | None = None
 
 
 @dataclass(frozen=True)
@@ -371,6 +377,10 @@ class NewtonSolver:
         self.history: list[float] = []
         self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
 
+    def set_atol(self, atol: float) -> None:
+        """Absolute residual tolerance of the following solves."""
+        self.snes.setTolerances(atol=atol)
+
     def _residual(self, snes, x, b):
         x.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         x.copy(self.problem.w.vector)
@@ -447,6 +457,10 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                     w.vector.axpy(-dt / dt_prev, prev2)
                     w.x.scatter_forward()
                     tried_pred = True
+                loose = augment is not None and newton is not None and \
+                    newton.augment_atol is not None and newton.augment_atol > newton.atol
+                if loose:
+                    solver.set_atol(newton.augment_atol)
                 ok, its, hist, reason = solver.solve()
                 if not ok and tried_pred:
                     prev.copy(w.vector)
@@ -456,7 +470,15 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                 n_aug = 0
                 while ok and augment is not None:
                     done, violation = augment(t_new >= 1.0 - 1e-12)
-                    if done:
+                    if done and loose:
+                        # accepted on a loosely converged state: converge it, check again
+                        loose = False
+                        solver.set_atol(newton.atol)
+                        ok, its2, hist2, reason = solver.solve()
+                        its, hist = its + its2, hist + hist2
+                        if ok:
+                            done, violation = augment(t_new >= 1.0 - 1e-12)
+                    if done or not ok:
                         break
                     n_aug += 1
                     if n_aug > stepping.max_augment:

@@ -177,3 +177,30 @@ def test_vertex_quadrature_needs_linear_elements():
 
     with pytest.raises(InputError, match="vertex"):
         _scene(0.74, MPI.COMM_SELF, quadrature="vertex")
+
+
+def test_loose_newton_between_uzawa_updates_ends_converged():
+    """NewtonOptions.augment_atol: the solves whose multipliers are then updated stop at the
+    loose tolerance, the accepted state still meets atol (a fresh Newton solve takes no
+    iteration from it), with fewer iterations and the same reaction (1e-6 relative)."""
+    from handfe.solver import LoadStepping, NewtonOptions, NewtonSolver, solve
+
+    out = {}
+    for loose in (None, 1e-4):
+        prob, _ft, top, platen, contact = _scene(0.0, MPI.COMM_SELF)
+
+        def set_load(t, platen=platen):
+            platen.value = np.array([0.0, 0.0, -DELTA * t])
+
+        res = solve(prob, set_load, augment=contact.augment,
+                    newton=NewtonOptions(atol=1e-10, augment_atol=loose),
+                    stepping=LoadStepping(initial=0.5))
+        assert sum(res.augment_iterations) >= 1  # the loose path was taken
+        check = NewtonSolver(prob, NewtonOptions(atol=1e-10))
+        ok, its, hist, reason = check.solve()
+        check.destroy()
+        assert ok and its == 0, (reason, hist)
+        assert contact.last_penetration_mm <= PEN_TOL
+        out[loose] = (res.total_newton_iterations, prob.reaction(top)[2])
+    assert out[1e-4][0] < out[None][0]
+    assert out[1e-4][1] == pytest.approx(out[None][1], rel=1e-6)
