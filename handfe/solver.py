@@ -281,7 +281,9 @@ class NewtonOptions:
     ``augment_atol`` (with an augmented-Lagrangian ``augment`` in :func:`solve`; None = off):
     Newton solves stop at this looser absolute tolerance while the multipliers are still being
     updated (their state is only the start of the next solve); once ``augment`` accepts, the
-    state is converged to ``atol`` and checked again, so the accepted state meets ``atol``."""
+    state is converged to ``atol`` and checked again, so the accepted state meets ``atol``. A
+    load step that fails this way is tried once more with every solve converged to ``atol``
+    (multipliers updated from loose states can stall Newton) before the step is cut."""
 
     rtol: float = 1e-9
     atol: float = 1e-10
@@ -441,11 +443,14 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
     prev2 = None  # the one before, for the predictor
     t, dt, dt_prev = 0.0, stepping.initial, None
     step = 0
+    use_loose = augment is not None and newton is not None and \
+        newton.augment_atol is not None and newton.augment_atol > newton.atol
     try:
         while t < 1.0 - 1e-12:
             step += 1
             dt = min(dt, 1.0 - t, stepping.max_step)
             cuts_here = 0
+            loose_failed = False
             while True:
                 t_new = t + dt
                 set_load(t_new)
@@ -457,10 +462,8 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                     w.vector.axpy(-dt / dt_prev, prev2)
                     w.x.scatter_forward()
                     tried_pred = True
-                loose = augment is not None and newton is not None and \
-                    newton.augment_atol is not None and newton.augment_atol > newton.atol
-                if loose:
-                    solver.set_atol(newton.augment_atol)
+                loose = use_loose and not loose_failed
+                solver.set_atol(newton.augment_atol if loose else solver.options.atol)
                 ok, its, hist, reason = solver.solve()
                 if not ok and tried_pred:
                     prev.copy(w.vector)
@@ -494,6 +497,14 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                 prev.copy(w.vector)
                 w.x.scatter_forward()
                 last = hist[-1] if hist else float("nan")
+                if use_loose and not loose_failed:
+                    # the multipliers updated from loosely converged states may be what
+                    # failed: the same step once more with every solve converged to atol
+                    loose_failed = True
+                    if progress:
+                        progress(f"  step {step}: {reason} (residual {last:.2e}) with loose "
+                                 "solves between multiplier updates; retrying with tight ones")
+                    continue
                 if dt / 2 < stepping.min_step * (1 - 1e-12):
                     set_load(t)
                     raise SolverError(
