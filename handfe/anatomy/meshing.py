@@ -634,7 +634,8 @@ def _read_cached_hand(gmsh, path: Path | None) -> tuple[dict | None, str | None]
     failed = path.with_suffix(".failed.json")
     if failed.exists():
         with contextlib.suppress(OSError, ValueError, KeyError):
-            return None, json.loads(failed.read_text())["error"] + " (cached failure)"
+            return None, (json.loads(failed.read_text())["error"] + f" (cached failure: {failed};"
+                          " HANDFE_MESH_CACHE=0 or deleting the file meshes it again)")
     side = path.with_suffix(".npz")
     if not side.exists():
         return None, None
