@@ -718,8 +718,11 @@ def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
     if comm.rank == 0:
         ensure_gmsh(gmsh)
         gmsh.option.setNumber("General.Terminal", 0)
-        path = hand_cache_path(subject, pose, digits, level, skip_far)
-        result, error = _read_cached_hand(gmsh, path)
+        try:
+            path = hand_cache_path(subject, pose, digits, level, skip_far)
+            result, error = _read_cached_hand(gmsh, path)
+        except Exception:  # a cache problem must not fail (or, on rank 0 alone, hang) a run
+            path, result, error = None, None, None
         if result is None and error is None:
             gmsh.model.add("hand")
             try:
