@@ -70,7 +70,7 @@ def open_cached(gmsh, path: Path | None) -> bool:
 
 
 def write_atomically(path: Path, write: Any) -> None:
-    """Call ``write(tmp_path)`` then rename the temporary file onto ``path``; an OSError (no
+    """Call ``write(tmp_path)`` then rename the temporary file onto ``path``; any error (no
     space, read-only home, a gmsh write error) skips the cache: a cache never fails a run.
     The temporary name keeps ``path``'s suffix."""
     tmp = path.with_name(f".{path.stem}.{os.getpid()}{path.suffix}")

@@ -443,8 +443,9 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
     prev2 = None  # the one before, for the predictor
     t, dt, dt_prev = 0.0, stepping.initial, None
     step = 0
-    use_loose = augment is not None and newton is not None and \
-        newton.augment_atol is not None and newton.augment_atol > newton.atol
+    opts = solver.options
+    use_loose = augment is not None and opts.augment_atol is not None and \
+        opts.augment_atol > opts.atol
     try:
         while t < 1.0 - 1e-12:
             step += 1
@@ -462,8 +463,9 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                     w.vector.axpy(-dt / dt_prev, prev2)
                     w.x.scatter_forward()
                     tried_pred = True
+                final = t_new >= 1.0 - 1e-12
                 loose = use_loose and not loose_failed
-                solver.set_atol(newton.augment_atol if loose else solver.options.atol)
+                solver.set_atol(opts.augment_atol if loose else opts.atol)
                 ok, its, hist, reason = solver.solve()
                 if not ok and tried_pred:
                     prev.copy(w.vector)
@@ -472,15 +474,15 @@ def solve(problem: HyperelasticProblem, set_load: Callable[[float], None], *,
                     its, hist = its + its2, hist + hist2
                 n_aug = 0
                 while ok and augment is not None:
-                    done, violation = augment(t_new >= 1.0 - 1e-12)
+                    done, violation = augment(final)
                     if done and loose:
                         # accepted on a loosely converged state: converge it, check again
                         loose = False
-                        solver.set_atol(newton.atol)
+                        solver.set_atol(opts.atol)
                         ok, its2, hist2, reason = solver.solve()
                         its, hist = its + its2, hist + hist2
                         if ok:
-                            done, violation = augment(t_new >= 1.0 - 1e-12)
+                            done, violation = augment(final)
                     if done or not ok:
                         break
                     n_aug += 1
