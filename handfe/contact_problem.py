@@ -92,14 +92,22 @@ class RigidContact:
     4 N; a penalty that follows the pressure keeps the number of Uzawa updates small.
 
     ``quadrature``: "gauss" (the problem's facet rule) or "vertex" (nodal collocation of the
-    contact force, P1 only; see :data:`VERTEX_RULE`)."""
+    contact force, P1 only; see :data:`VERTEX_RULE`).
+
+    ``multiplier_degree``: Lagrange degree of the normal multiplier lambda_n, whose nodes are
+    where the Uzawa update acts and the penetration is checked (default 1: the vertices);
+    None = the displacement's degree (for P2: vertices and edge midpoints, every node at which
+    :meth:`metrics` measures the gap; the fingertip scene's choice). P2 multipliers with a
+    sliding block (tests/test_friction.py, mu N exceeded) stalled at 94 % of the slide
+    (DIVERGED_MAX_IT), so 1 stays the default here."""
 
     def __init__(self, problem: HyperelasticProblem, obstacle: Any, facet_tags, tag: int, *,
                  mu: float = 0.74, penalty_factor: float = 10.0, augmented: bool = True,
                  penetration_tol_mm: float = 0.01, gap_tol_mm: float = 0.01,
                  E_eff_MPa: float | None = None, augmented_friction: bool = False,
                  adaptive_penalty: float | None = None, stick_ratio: float = 1.0,
-                 stick_tol_mm: float | None = None, quadrature: str = "gauss"):
+                 stick_tol_mm: float | None = None, quadrature: str = "gauss",
+                 multiplier_degree: int | None = 1):
         if mu < 0:
             raise InputError(f"friction coefficient mu = {mu} must be >= 0")
         if not 0 < stick_ratio <= 1:
@@ -126,7 +134,10 @@ class RigidContact:
         self._k_t: fem.Constant | None = None
         self.translation = fem.Constant(mesh, PETSc.ScalarType((0.0, 0.0, 0.0)))
         self.translation_ref = fem.Constant(mesh, PETSc.ScalarType((0.0, 0.0, 0.0)))
-        Q = fem.FunctionSpace(mesh, ("CG", 1))
+        qdeg = problem.disc.degree if multiplier_degree is None else int(multiplier_degree)
+        if qdeg not in (1, 2):
+            raise InputError(f"multiplier_degree = {multiplier_degree!r}: 1, 2 or None")
+        Q = fem.FunctionSpace(mesh, ("CG", qdeg))
         self.lambda_n = fem.Function(Q, name="contact_multiplier") if augmented else None
         ds = ufl.Measure("ds", domain=mesh, subdomain_data=facet_tags,
                          metadata=VERTEX_RULE if quadrature == "vertex" else problem.ds_metadata)
@@ -274,12 +285,14 @@ class RigidContact:
         self.u_ref.x.scatter_forward()
 
     def metrics(self, axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
-                symmetry_normal=None) -> ContactMetrics:
+                symmetry_normal=None, area: str = "nodal") -> ContactMetrics:
         """Contact outputs of the surface (forces N, area mm^2, pressures kPa); for a half
-        model (``symmetry_normal``) those of the whole body (:func:`contact_metrics`)."""
+        model (``symmetry_normal``) those of the whole body; ``area`` = nodal | clip
+        (:func:`contact_metrics`)."""
         return contact_metrics(self.problem.displacement(), self.obstacle,
                                self.translation.value, self.facet_tags, self.tag,
                                gap_tol_mm=self.gap_tol_mm, pressure=self.terms.pressure,
                                tangential_traction=self.terms.tangential_traction, axes=axes,
                                comm=self.problem.comm, symmetry_normal=symmetry_normal,
+                               area=area,
                                metadata=VERTEX_RULE if self.quadrature == "vertex" else None)

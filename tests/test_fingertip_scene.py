@@ -55,8 +55,10 @@ def test_half_model_matches_full():
     deflection: same plate travel, within the difference of two h = 3 mm meshes."""
     out = {}
     for half in (True, False):
-        sc = FingertipCompression(FingertipConfig(**COARSE, friction=0.0, half_model=half),
-                                  comm=MPI.COMM_SELF)
+        # clipped area: the nodal one of two different 3 mm meshes differs by ~half an
+        # element strip round a 35 mm^2 patch (10 %), noise of the rule, not of the mirroring
+        sc = FingertipCompression(FingertipConfig(**COARSE, friction=0.0, half_model=half,
+                                                  area_method="clip"), comm=MPI.COMM_SELF)
         sc.push_to_deflection(1.5)
         m = sc.metrics()
         out[half] = (sc.plate_force(), m.contact_area_mm2, m.width_mm, m.length_mm,

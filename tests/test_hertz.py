@@ -23,9 +23,11 @@ Measured quantities.
   too, to within one quarter of the local element size (5 %).
 * Penetration <= 0.01 mm (``ContactMetrics.max_penetration_mm``).
 
-Numbers (this mesh, 1 rank): force +1.5 % (reaction) / +1.8 % (metrics), fitted radius +0.5 %,
-outermost pressure node +2.6 %, penetration 1.4e-4 mm. Reproduce: ``.venv/bin/pytest -q -s
-tests/test_hertz.py``.
+Numbers (this mesh, 1 rank; penetration at the six nodes of each facet, the radius from the
+multiplier's nodes): P1 multipliers (vertices) force +1.4 % (reaction) / +1.6 % (metrics),
+fitted radius -0.5 %, outermost pressure node +3.9 %, penetration 2.9e-4 mm; P2 multipliers
+(vertices and edge midpoints) +1.5 % / +1.7 %, -0.3 %, +3.9 %, 1.3e-4 mm.
+Reproduce: ``.venv/bin/pytest -q -s tests/test_hertz.py``.
 """
 
 from __future__ import annotations
@@ -88,8 +90,8 @@ def _quarter_block(comm):
     return msh, ft
 
 
-def _solve(comm) -> dict[str, float]:
-    from handfe.contact import Sphere, _node_values
+def _solve(comm, multiplier_degree: int | None = 1) -> dict[str, float]:
+    from handfe.contact import Sphere
     from handfe.contact_problem import RigidContact
     from handfe.materials import NeoHookean
     from handfe.solver import Discretisation, HyperelasticProblem, LoadStepping, solve
@@ -102,7 +104,7 @@ def _solve(comm) -> dict[str, float]:
     prob.fix(ft.find(TAG_Y0), 0.0, components=(1,))
     sphere = Sphere(centre=(0.0, 0.0, R_MM), radius=R_MM)
     contact = RigidContact(prob, sphere, ft, TAG_CONTACT, mu=0.0, penalty_factor=50.0,
-                           penetration_tol_mm=PEN_TOL)
+                           penetration_tol_mm=PEN_TOL, multiplier_degree=multiplier_degree)
 
     def set_load(t: float) -> None:
         contact.translation.value = np.array([0.0, 0.0, -t * DELTA_MM])
@@ -111,11 +113,13 @@ def _solve(comm) -> dict[str, float]:
                 stepping=LoadStepping(initial=0.5, min_step=1.0 / 64))
     m = contact.metrics()
     reaction = prob.reaction(bottom)
-    # nodal contact pressure on the contact face (owned vertices only), radius from the axis
-    x = msh.geometry.x
-    lam = _node_values(contact.lambda_n, msh)[:, 0]
-    n_own = msh.geometry.index_map().size_local
-    on_face = np.flatnonzero(np.isclose(x[:n_own, 2], 0.0))
+    # nodal contact pressure on the contact face (the multiplier's owned nodes: vertices and
+    # edge midpoints, it has the displacement's degree), radius from the axis
+    Q = contact.lambda_n.function_space
+    n_own = Q.dofmap.index_map.size_local
+    x = Q.tabulate_dof_coordinates()[:n_own]
+    lam = contact.lambda_n.x.array[:n_own]
+    on_face = np.flatnonzero(np.isclose(x[:, 2], 0.0))
     r = np.hypot(x[on_face, 0], x[on_face, 1])
     p = lam[on_face]
     r_all = np.concatenate(comm.allgather(r))
@@ -136,12 +140,14 @@ def _solve(comm) -> dict[str, float]:
 
 
 @functools.cache
-def _serial() -> dict[str, float]:
-    return _solve(MPI.COMM_SELF)
+def _serial(multiplier_degree: int | None = 1) -> dict[str, float]:
+    return _solve(MPI.COMM_SELF, multiplier_degree)
 
 
-def test_hertz_force_radius_penetration():
-    r = _serial()
+@pytest.mark.parametrize("multiplier_degree", [1, None], ids=["p1-multiplier", "p2-multiplier"])
+def test_hertz_force_radius_penetration(multiplier_degree):
+    """P1 multipliers (RigidContact's default) and the displacement's degree (the fingertip's)."""
+    r = _serial(multiplier_degree)
     print("\nHertz:", {k: round(v, 6) for k, v in r.items()},
           f"F_H = {F_HERTZ:.6f} N, a_H = {A_HERTZ:.6f} mm")
     assert r["force_reaction_N"] == pytest.approx(F_HERTZ, rel=0.03)
