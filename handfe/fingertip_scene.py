@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from handfe.contact import AREA_METHODS
 from handfe.errors import InputError, SolverError
 from handfe.materials import Material, MooneyRivlin, NeoHookean
 
@@ -38,9 +39,17 @@ class FingertipConfig:
     ``newton_augment_atol_N``: Newton solves followed by a multiplier update stop at this
     residual (N) instead of ``newton_atol_N`` (see
     :class:`~handfe.solver.NewtonOptions`); every accepted state meets ``newton_atol_N``.
-    Measured (15 deg, 4 N, 2 ranks): default mesh 107 -> 64 Newton iterations, 150 -> 88 s
-    wall, deflection 3.0402 -> 3.0403 mm, area 168.32 -> 168.35 mm^2; h = 1 mm 79 -> 61, 337 ->
-    229 s (1e-3 N: 60 iterations at default, but h = 1 mm stalled); None = off.
+    Measured (15 deg, 4 N, 2 ranks): h = 1.5 mm (pad 0.9, the default level then) 107 -> 64
+    Newton iterations, 150 -> 88 s wall, deflection 3.0402 -> 3.0403 mm, area (clipped rule)
+    168.32 -> 168.35 mm^2; h = 1 mm 79 -> 61, 337 -> 229 s (1e-3 N: 60 iterations at 1.5 mm,
+    but h = 1 mm stalled); None = off.
+
+    Mesh: ``mesh`` level, or ``h_mm`` (element size away from the pad) and ``h_pad_mm`` (on
+    the pad; default 0.6 h_mm or the level's). ``area_method``: contact area rule, ``nodal``
+    (default, lumped nodal area) or ``clip`` (:func:`~handfe.contact.contact_metrics`).
+    ``multiplier_degree``: of the normal contact multiplier (None = the displacement's: with
+    Taylor-Hood the penetration <= ``penetration_tol_mm`` holds at the edge midpoints too;
+    with P1 multipliers they sank up to 0.023 mm at h 2.0 / pad 1.0 mm, 4 N).
 
     ``half_model``: fingertip and plate load are symmetric about the sagittal plane y = 0, so
     only y >= 0 is meshed, with u_y = 0 on that face; every reported number (forces, areas,
@@ -50,6 +59,7 @@ class FingertipConfig:
     angle_deg: float = 15.0
     mesh: str = "default"
     h_mm: float | None = None
+    h_pad_mm: float | None = None
     element: str = "taylor-hood"
     material: Material | None = None
     layered: bool = False
@@ -67,6 +77,8 @@ class FingertipConfig:
     newton_linesearch: str = "basic"
     newton_augment_atol_N: float | None = 1e-4
     gap_tol_mm: float = 0.01
+    area_method: str = "nodal"
+    multiplier_degree: int | None = None
     penetration_tol_mm: float = 0.01
     nail_E_MPa: float = 170.0
     half_model: bool = True
@@ -86,6 +98,9 @@ class FingertipConfig:
                 math.isfinite(self.newton_augment_atol_N) and self.newton_augment_atol_N > 0.0):
             raise InputError(f"newton_augment_atol_N {self.newton_augment_atol_N!r} must be > 0 "
                              "or None")
+        if self.area_method not in AREA_METHODS:
+            raise InputError(f"area_method {self.area_method!r}: use one of "
+                             f"{', '.join(AREA_METHODS)}")
         if self.adaptive_penalty is not None and not self.adaptive_penalty > 0.0:
             raise InputError(f"adaptive_penalty {self.adaptive_penalty!r} must be > 0 or None")
 
@@ -162,6 +177,9 @@ class FingertipResult:
     element: str
     material: dict[str, Any]
     half_model: bool = False
+    h_mm: float = float("nan")  # element size away from the pad, mm
+    h_pad_mm: float = float("nan")  # element size on the pad, mm
+    area_method: str = "nodal"  # contact area rule (handfe.contact module docstring)
     sweep: list[dict[str, float]] = field(default_factory=list)
 
 
@@ -184,6 +202,7 @@ class FingertipCompression:
         t0 = time.perf_counter()
         self.geom = fingertip_geometry(cfg.subject)
         self.fm = build_fingertip_mesh(self.geom, level=cfg.mesh, h_mm=cfg.h_mm,
+                                       h_pad_mm=cfg.h_pad_mm,
                                        layered=cfg.layered,
                                        skin_thickness_mm=cfg.skin_thickness_mm,
                                        half=cfg.half_model, comm=self.comm)
@@ -218,7 +237,8 @@ class FingertipCompression:
                                     adaptive_penalty=cfg.adaptive_penalty,
                                     augmented_friction=cfg.augmented_friction,
                                     stick_ratio=cfg.stick_ratio,
-                                    stick_tol_mm=cfg.stick_tol_mm)
+                                    stick_tol_mm=cfg.stick_tol_mm,
+                                    multiplier_degree=cfg.multiplier_degree)
         # first contact: the plate plane through the lowest pad point along n
         self.g0 = self._initial_gap()
         self.deflection = 0.0
@@ -263,7 +283,8 @@ class FingertipCompression:
     def metrics(self):
         """Contact metrics of the pad (:class:`~handfe.contact.ContactMetrics`), the whole
         fingertip's also for a half model."""
-        return self.contact.metrics(axes=self.axes(), symmetry_normal=self.symmetry_normal)
+        return self.contact.metrics(axes=self.axes(), symmetry_normal=self.symmetry_normal,
+                                    area=self.cfg.area_method)
 
     def bone_reaction(self) -> np.ndarray:
         """Force of the bone support on the tissue (N), the whole fingertip's."""
@@ -465,8 +486,10 @@ class FingertipCompression:
             newton_iterations=its, uzawa_updates=ups, dofs=self.problem.num_dofs(),
             cells=self.fm.num_cells, wall_s=wall_s, solve_s=solve_s, mesh_s=self.mesh_s,
             angle_deg=self.cfg.angle_deg, subject=self.cfg.subject,
-            mesh=self.cfg.mesh if self.cfg.h_mm is None else f"h={self.cfg.h_mm:g}",
+            mesh=self.cfg.mesh if self.cfg.h_mm is None and self.cfg.h_pad_mm is None
+            else f"h={self.fm.h_mm:g},pad={self.fm.h_pad_mm:g}",
             element=self.cfg.element, half_model=self.cfg.half_model,
+            h_mm=self.fm.h_mm, h_pad_mm=self.fm.h_pad_mm, area_method=self.cfg.area_method,
             material={"law": mat.law, **{k: (list(v) if isinstance(v, tuple) else v)
                                          for k, v in asdict(mat).items()}})
 

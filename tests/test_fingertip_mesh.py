@@ -105,13 +105,17 @@ def test_geometry_mean_row(geom):
 
 
 def test_levels_ordered_coarse_for_tests():
-    """'coarse' (for fast tests of other modules, not validated) is the coarsest level and each
-    level's pad is finer than its global size."""
+    """'coarse' (for fast tests of other modules, not validated) is the coarsest level, each
+    level is no coarser than the one before and has a finer pad, and each level's pad is
+    finer than its global size; an explicit pad size overrides."""
     names = ("coarse", "reduced", "default", "fine")
     sizes = [mesh_sizes(n) for n in names]
     assert sizes[0] == (3.5, 2.0)
-    assert all(a[0] > b[0] and a[1] > b[1] for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+    assert all(a[0] >= b[0] and a[1] > b[1] for a, b in zip(sizes[:-1], sizes[1:], strict=True))
     assert all(h_pad < h for h, h_pad in sizes)
+    assert mesh_sizes(h_mm=2.0) == (2.0, pytest.approx(1.2))
+    assert mesh_sizes(h_mm=2.0, h_pad_mm=0.8) == (2.0, 0.8)
+    assert mesh_sizes("reduced", h_pad_mm=1.0) == (2.5, 1.0)
 
 
 def test_bad_input(geom):
@@ -121,6 +125,8 @@ def test_bad_input(geom):
         mesh_sizes("tiny")
     with pytest.raises(InputError, match="h_mm"):
         mesh_sizes(h_mm=-1.0)
+    with pytest.raises(InputError, match="h_pad_mm.*3"):
+        mesh_sizes(h_mm=2.0, h_pad_mm=3.0)
     with pytest.raises(InputError, match="skin_thickness"):
         build_fingertip_mesh(geom, level="reduced", layered=True, skin_thickness_mm=10.0)
 
