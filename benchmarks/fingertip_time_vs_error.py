@@ -42,7 +42,8 @@ def main() -> None:
                     help="half (default, the scene's default: y >= 0 with u_y = 0 on the "
                          "symmetry plane) or full fingertip")
     ap.add_argument("--sizes", default="3.0,2.5,2.0,1.5,1.2",
-                    help="global element sizes h, mm, coarse to fine (pad is 0.6 h)")
+                    help="element sizes, mm, coarse to fine: H (pad 0.6 H) or H:PAD (global "
+                         "size H, pad size PAD), comma-separated")
     ap.add_argument("--elements", default="taylor-hood,p1-p0",
                     help="element families, comma-separated (taylor-hood, p1-p0, p2, p1)")
     ap.add_argument("--budget-s", type=float, default=None,
@@ -65,7 +66,7 @@ def main() -> None:
             with open(a.from_csv) as f:
                 report(list(csv.DictReader(f)), Path(a.out), f"fingertip (from {a.from_csv})")
         return
-    sizes = [float(x) for x in a.sizes.split(",")]
+    sizes = [parse_size(x) for x in a.sizes.split(",")]
     half = a.model == "half"
     rows = []
     t_start = time.perf_counter()
@@ -80,10 +81,10 @@ def main() -> None:
             break
         if not a.no_warmup:
             # warm-up: compile this element's forms once (not timed)
-            run(FingertipConfig(angle_deg=a.angle, h_mm=max(sizes), element=el,
+            run(FingertipConfig(angle_deg=a.angle, h_mm=max(s[0] for s in sizes), element=el,
                                 half_model=half),
                 force_N=min(a.force, 1.0), comm=comm)
-        for h in sizes:
+        for h, pad in sizes:
             times, cpus, loads, solves, res = [], [], [], [], None
             for _ in range(a.repeats):
                 # rank 0's time decides, so every rank stops at the same point
@@ -92,14 +93,15 @@ def main() -> None:
                     break
                 loads.append(os.getloadavg()[0])
                 t0, c0 = time.perf_counter(), time.process_time()
-                res = run(FingertipConfig(angle_deg=a.angle, h_mm=h, element=el,
+                res = run(FingertipConfig(angle_deg=a.angle, h_mm=h, h_pad_mm=pad, element=el,
                                           half_model=half), force_N=a.force, comm=comm)
                 times.append(time.perf_counter() - t0)
                 solves.append(res.solve_s)
                 cpus.append(time.process_time() - c0)
             if res is None:
                 break
-            row = {"element": el, "model": a.model, "h_mm": h, "dofs": res.dofs,
+            row = {"element": el, "model": a.model, "h_mm": h, "h_pad_mm": res.h_pad_mm,
+                   "area_method": res.area_method, "dofs": res.dofs,
                    "cells": res.cells, "runs": len(times),
                    "wall_s_median": statistics.median(times),
                    "solve_s_median": statistics.median(solves), "mesh_s": res.mesh_s,
@@ -109,7 +111,7 @@ def main() -> None:
                    **{m: getattr(res, m) for m in METRICS},
                    "max_penetration_mm": res.max_penetration_mm, "ranks": comm.size}
             rows.append(row)
-            rprint(f"# {el} h={h}: {row}")
+            rprint(f"# {el} h={h} pad={res.h_pad_mm:g}: {row}")
             if comm.rank == 0:
                 out.mkdir(parents=True, exist_ok=True)
                 write_csv(out / "fingertip_time_vs_error.csv", rows)
@@ -117,6 +119,19 @@ def main() -> None:
                 break
     if comm.rank == 0 and rows:
         report(rows, out, f"fingertip, {a.force:g} N at {a.angle:g} deg, {comm.size} rank(s)")
+
+
+def parse_size(text: str) -> tuple[float, float | None]:
+    """'H' -> (H, None: pad 0.6 H); 'H:PAD' -> (H, PAD), mm."""
+    h, _, pad = text.strip().partition(":")
+    return float(h), (float(pad) if pad else None)
+
+
+def _fineness(r: dict) -> tuple[float, float]:
+    """Sort key, finest first: global size, then pad size (rows without one: 0.6 h)."""
+    h = float(r["h_mm"])
+    pad = r.get("h_pad_mm")
+    return h, float(pad) if pad not in (None, "") else 0.6 * h
 
 
 def report(rows: list[dict], out: Path, title: str) -> None:
@@ -129,9 +144,9 @@ def report(rows: list[dict], out: Path, title: str) -> None:
         for m in METRICS:
             r[m] = float(r[m])
     th = [r for r in rows if r["element"] == "taylor-hood"] or rows
-    best = min(th, key=lambda r: r["h_mm"])
+    best = min(th, key=_fineness)
     for el in {r["element"] for r in rows}:
-        mine = sorted((r for r in rows if r["element"] == el), key=lambda r: r["h_mm"])
+        mine = sorted((r for r in rows if r["element"] == el), key=_fineness)
         ref = mine[0]
         for r in mine:
             for m in METRICS:
@@ -148,21 +163,26 @@ def report(rows: list[dict], out: Path, title: str) -> None:
     fig, axs = plt.subplots(1, 3, figsize=(13, 4), dpi=110)
     for ax, m in zip(axs, METRICS, strict=True):
         for el in sorted({r["element"] for r in rows}):
-            pts = [(r["wall_s_median"], r[f"err_{m}_vs_ref_pct"], r["h_mm"]) for r in rows
+            pts = [(r["wall_s_median"], r[f"err_{m}_vs_ref_pct"], _label(r)) for r in rows
                    if r["element"] == el and r is not best]
             if pts:
                 ax.loglog([p[0] for p in pts], [max(p[1], 1e-2) for p in pts], "o-", label=el)
                 for p in pts:
-                    ax.annotate(f"h={p[2]:g}", (p[0], max(p[1], 1e-2)), fontsize=7)
+                    ax.annotate(p[2], (p[0], max(p[1], 1e-2)), fontsize=7)
         ax.axhline(2.0, color="0.5", ls="--", lw=0.8)
         ax.axvline(20.0, color="0.5", ls=":", lw=0.8)
         ax.set_xlabel("wall time, median (s)")
         ax.set_ylabel(f"error of {m} (%)")
         ax.legend(fontsize=8)
-    fig.suptitle(f"{title}; reference: taylor-hood h = {best['h_mm']:g} mm "
+    fig.suptitle(f"{title}; reference: taylor-hood {_label(best)} mm "
                  f"({best['wall_s_median']:.0f} s)")
     fig.tight_layout()
     fig.savefig(out / "fingertip_time_vs_error.png")
+
+
+def _label(r: dict) -> str:
+    h, pad = _fineness(r)
+    return f"h={h:g}/{pad:g}"
 
 
 if __name__ == "__main__":
