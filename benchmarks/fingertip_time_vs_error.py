@@ -29,6 +29,7 @@ from pathlib import Path
 
 from mpi4py import MPI
 
+from handfe.fingertip import PAD_SIZE_RATIO
 from handfe.fingertip_scene import FingertipConfig, run
 from handfe.io import write_csv
 from handfe.parallel import rprint
@@ -126,16 +127,17 @@ def main() -> None:
 
 
 def parse_size(text: str) -> tuple[float, float | None]:
-    """'H' -> (H, None: pad 0.6 H); 'H:PAD' -> (H, PAD), mm."""
+    """'H' -> (H, None: the scene's pad size PAD_SIZE_RATIO x H); 'H:PAD' -> (H, PAD), mm."""
     h, _, pad = text.strip().partition(":")
     return float(h), (float(pad) if pad else None)
 
 
 def _fineness(r: dict) -> tuple[float, float]:
-    """Sort key, finest first: global size, then pad size (rows without one: 0.6 h)."""
+    """Sort key, finest first: global size, then pad size (rows of older CSVs without one:
+    the scene's PAD_SIZE_RATIO x h)."""
     h = float(r["h_mm"])
     pad = r.get("h_pad_mm")
-    return h, float(pad) if pad not in (None, "") else 0.6 * h
+    return h, float(pad) if pad not in (None, "") else PAD_SIZE_RATIO * h
 
 
 def report(rows: list[dict], out: Path, title: str) -> None:

@@ -770,28 +770,27 @@ def _nodal_patch(x: np.ndarray, phi: np.ndarray, axes: np.ndarray):
     return area, mom, lo, hi
 
 
-def _facet_subtriangles(u, facets: np.ndarray) -> np.ndarray:
-    """The deformed boundary facets ``facets`` (owned, exterior) split at their edge midpoints:
-    (4 nf, 3, 3) flat triangles through X + u at the vertices and edge midpoints (u evaluated
-    in the facet's cell, so a P2 displacement's mid-edge values are used)."""
-    from dolfinx import cpp
+#: the four sub-triangles of a facet whose six nodes are (v0, v1, v2, m01, m12, m20): the
+#: corner triangles v0 m01 m20, m01 v1 m12, m20 m12 v2 and the centre m01 m12 m20
+SUBTRIANGLES = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
 
+
+def _facet_nodes(u, facets: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """Deformed positions X + u (nf, 6, 3) of the boundary facets ``facets`` (owned,
+    exterior; ``nodes`` their vertex geometry indices, (nf, 3)): the three vertices, then the
+    midpoints of edges 01, 12, 20 (u evaluated in the facet's cell, so a P2 displacement's
+    mid-edge values are used)."""
     mesh = u.function_space.mesh
     fdim = mesh.topology.dim - 1
     if facets.size == 0:
-        return np.zeros((0, 3, 3))
-    nodes = cpp.mesh.entities_to_geometry(mesh._mesh, fdim, facets, False)[:, :3]
+        return np.zeros((0, 6, 3))
     mesh.topology.create_connectivity(fdim, fdim + 1)
     f2c = mesh.topology.connectivity(fdim, fdim + 1)
     cells = np.array([f2c.links(f)[0] for f in facets], dtype=np.int32)
-    Xv = mesh.geometry.x[:, :3][nodes]  # (nf, 3, 3)
-    Xm = 0.5 * (Xv + Xv[:, [1, 2, 0]])  # midpoints of edges 01, 12, 20
-    X = np.concatenate([Xv, Xm], axis=1)  # (nf, 6, 3)
+    Xv = mesh.geometry.x[:, :3][nodes]
+    X = np.concatenate([Xv, 0.5 * (Xv + Xv[:, [1, 2, 0]])], axis=1)
     vals = u.eval(np.ascontiguousarray(X.reshape(-1, 3)), np.repeat(cells, 6))
-    x = X + np.asarray(vals).reshape(X.shape)
-    # corner triangles v0 m01 m20, m01 v1 m12, m20 m12 v2 and the centre m01 m12 m20
-    sub = np.array([[0, 3, 5], [3, 1, 4], [5, 4, 2], [3, 4, 5]])
-    return x[:, sub].reshape(-1, 3, 3)
+    return X + np.asarray(vals).reshape(X.shape)
 
 
 def mirrored_total(v, symmetry_normal) -> np.ndarray:
@@ -853,7 +852,7 @@ def contact_metrics(u, obstacle, translation_value, facet_tags, tag: int, *,
     facets = _owned_tagged_facets(mesh, facet_tags, tag)
     nodes = cpp.mesh.entities_to_geometry(mesh._mesh, fdim, facets, False)[:, :3] \
         if facets.size else np.zeros((0, 3), dtype=np.int32)
-    xf = _facet_subtriangles(u, facets)  # (4 nf, 3, 3)
+    xf = _facet_nodes(u, facets, nodes)[:, SUBTRIANGLES].reshape(-1, 3, 3)  # (4 nf, 3, 3)
     g, _ = obstacle.gap_normal(xf.reshape(-1, 3), t_val)
     g = g.reshape(-1, 3)
     patch = _nodal_patch if area == "nodal" else _clip_patch
