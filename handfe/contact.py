@@ -84,16 +84,17 @@ node in contact and a free node reaches the tolerance right next to the node in 
 clipped patch ends ~half an element short of the true edge all round (an O(h) deficit,
 perimeter x h/2). The nodal rule puts the edge half-way between the two nodes, which is unbiased
 for an edge at an unknown position between them. Measured on the fingertip at 4 N (15 deg,
-docs/contact.md "Update 2 Dec 2026 (seventh session)"): pad element size 1.5 / 1.0 / 0.75 /
-0.6 / 0.45 mm gave 176.4 / 184.1 / 183.6 / 185.6 / 186.7 mm^2 nodal against 166.7 / 176.6 /
-179.5 / 182.4 / 185.2 mm^2 clipped (and 156.4 ... 180.0 mm^2 for the clipped vertex-only
-triangles used before). The nodal area jumps by one node's share (~0.1 % of the patch on the
-fingertip's default mesh) when a node crosses the tolerance; use ``area="clip"`` where a smooth
-curve matters more than the bias. Centroid, patch length/width and the largest penetration (at
-the six nodes of each facet) come from the same patch: for the nodal rule the patch is the
-nodes in contact plus the midpoints of the sub-triangle edges from them to free nodes.
-Forces and mean pressure are integrals of the supplied pressure over the deformed surface
-(quadrature); peak pressure is the largest value at the region's vertices.
+docs/contact.md "Update 2 Dec 2026 (seventh session)", benchmarks/fingertip_area_rules.py):
+pad element size 1.5 / 1.0 / 0.75 / 0.6 / 0.45 mm gave 176.4 / 184.1 / 183.6 / 185.6 / 186.2
+mm^2 nodal against 166.7 / 176.6 / 179.5 / 182.4 / 184.7 mm^2 clipped (and 156.4 ... 179.7
+mm^2 for the clipped vertex-only triangles used before). The nodal area jumps by one node's
+share (~0.1 % of the patch on the fingertip's default mesh) when a node crosses the
+tolerance; use ``area="clip"`` where a smooth curve matters more than the bias. Centroid,
+patch length/width and the largest penetration (at the six nodes of each facet) come from the
+same patch: for the nodal rule the patch is the nodes in contact plus the midpoints of the
+sub-triangle edges from them to free nodes. Forces and mean pressure are integrals of the
+supplied pressure over the deformed surface (quadrature); peak pressure is the largest value
+at the region's vertices.
 """
 
 from __future__ import annotations
