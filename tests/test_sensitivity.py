@@ -101,6 +101,27 @@ def test_shipped_grasp_studies(name):
     assert st.kind == "grasp" and "skin" in st.parameters
 
 
+def test_muscle_parameters_need_muscle_loading():
+    """workflows/precision.toml closes the digits by angles, where the muscle forces do not
+    act: a muscle parameter would tabulate zero changes, so the study is refused, naming the
+    file, the parameter and the workflow; loading = "muscles" (or materials only) is fine."""
+    base = {"name": "g", "kind": "grasp", "workflow": "workflows/precision.toml",
+            "levels_pct": [10]}
+    src = str(REPO / "sensitivity" / "g.toml")
+    with pytest.raises(ConfigError) as ei:
+        study_from_dict({**base, "parameters": ["skin", "FDP"]}, source=src)
+    msg = str(ei.value)
+    assert "g.toml" in msg and "'parameters[1]' = 'FDP'" in msg and "precision.toml" in msg
+    with pytest.raises(ConfigError, match="'loading' = 'angles'"):
+        study_from_dict({**base, "parameters": ["FDS"], "loading": "angles"}, source=src)
+    assert study_from_dict({**base, "parameters": ["skin", "FDP"], "loading": "muscles"},
+                           source=src).baseline_loading() == "muscles"
+    assert study_from_dict({**base, "parameters": ["skin"]}, source=src
+                           ).baseline_loading() == "angles"
+    with pytest.raises(ConfigError, match="'loading' = 'muscles': only for kind = 'grasp'"):
+        study_from_dict({**FT, "loading": "muscles"}, source=src)
+
+
 @pytest.mark.parametrize("change,needle", [
     ({"colour": 1}, "unknown key 'colour'"),
     ({"parameters": ["skin", "FDS"]}, "'parameters[1]' = 'FDS'"),
@@ -326,8 +347,9 @@ def test_grasp_runner_plumbing(tmp_path, monkeypatch):
     calls = []
 
     def stub(wf, *, mesh=None, out_dir=None, comm=None, materials=None, muscle_scale=None,
-             progress=True):
-        calls.append(dict(wf=wf, mesh=mesh, materials=materials, muscle_scale=muscle_scale))
+             loading=None, progress=True):
+        calls.append(dict(wf=wf, mesh=mesh, materials=materials, muscle_scale=muscle_scale,
+                          loading=loading))
         f = (muscle_scale or {}).get("FDP", 1.0)
         regions = {r: {"contact_area_mm2": 50.0 * f, "mean_pressure_kPa": 30.0,
                        "peak_pressure_kPa": 90.0, "normal_force_N": 1.5 * f,
@@ -336,7 +358,8 @@ def test_grasp_runner_plumbing(tmp_path, monkeypatch):
 
     monkeypatch.setattr(scene, "run_workflow", stub)
     st = study_from_dict({"name": "g", "kind": "grasp", "workflow": "workflows/precision.toml",
-                          "parameters": ["skin", "FDP"], "levels_pct": [10],
+                          "loading": "muscles", "parameters": ["skin", "FDP"],
+                          "levels_pct": [10],
                           "regions": ["thumb", "index", "middle"]},
                          source=str(REPO / "sensitivity" / "g.toml")).with_mesh("coarse")
     res = run_study(st, tmp_path, progress=False, charts=False, comm=MPI.COMM_SELF)
@@ -344,7 +367,7 @@ def test_grasp_runner_plumbing(tmp_path, monkeypatch):
     by_case = {("FDP" if c["muscle_scale"] else "skin" if c["materials"]["skin"].mu_MPa !=
                 Ogden.skin().mu_MPa else "baseline"): c for c in calls}
     assert set(by_case) == {"baseline", "skin", "FDP"}
-    assert all(c["mesh"] == "coarse" for c in calls)
+    assert all(c["mesh"] == "coarse" and c["loading"] == "muscles" for c in calls)
     assert by_case["FDP"]["muscle_scale"] == {"FDP": pytest.approx(1.1)}
     nu = calls[0]["wf"].solver.nu
     assert all(m.nu == nu for c in calls for m in c["materials"].values())

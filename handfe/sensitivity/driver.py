@@ -128,6 +128,8 @@ def fingerprint(study: Study, case: Case) -> str:
         d["fingertip"] = {**asdict(study.fingertip), "half_model": FingertipConfig().half_model}
     else:
         d["workflow"] = study.workflow_digest()
+        if study.loading is not None:  # absent key: fingerprints of older case files hold
+            d["loading"] = study.loading
     if case.parameter in MATERIAL_PARAMETERS:
         d["refit"] = asdict(study.refit)
     return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
@@ -175,7 +177,8 @@ def run_grasp_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
     mats = {k: (Ogden(m.mu_MPa, m.alpha, nu=float(nu)) if nu is not None else m)
             for k, m in spec.materials.items()}
     res = run_workflow(wf, mesh=study.mesh, out_dir=None, comm=comm, materials=mats,
-                       muscle_scale=spec.muscle_scale or None, progress=False)
+                       muscle_scale=spec.muscle_scale or None, loading=study.loading,
+                       progress=False)
     regions = {str(r): {str(k): float(v) for k, v in m.items()
                         if isinstance(v, int | float) and not isinstance(v, bool)}
                for r, m in res.regions.items()}

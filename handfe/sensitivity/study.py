@@ -79,6 +79,9 @@ class Study:
     metrics: tuple[str, ...] = ()
     regions: tuple[str, ...] = ()
     workflow: str = ""
+    #: grasp studies: the loading mode of every case ("muscles" / "angles"); None = the
+    #: workflow's. Muscle-force parameters need "muscles" (the angles mode ignores them).
+    loading: str | None = field(default=None, metadata=choices("muscles", "angles"))
     mesh: str | None = None
     description: str = ""
     refit: RefitSettings = field(default_factory=RefitSettings)
@@ -134,11 +137,38 @@ class Study:
             if self.workflow_path() is None:
                 raise ConfigError(f"{src}: 'workflow' = {self.workflow!r}: file not found "
                                   f"(looked next to the study file and under {REPO_ROOT})")
+            self._check_muscles_act()
         elif self.workflow:
             raise ConfigError(f"{src}: 'workflow' = {self.workflow!r}: only for kind = 'grasp'")
+        elif self.loading is not None:
+            raise ConfigError(f"{src}: 'loading' = {self.loading!r}: only for kind = 'grasp'")
         if self.kind == "fingertip" and tuple(self.regions) != ("pad",):
             raise ConfigError(f"{src}: 'regions' = {list(self.regions)}: the fingertip scene "
                               "has one region, 'pad'")
+
+    def baseline_loading(self) -> str:
+        """The loading mode the grasp cases run with: ``loading``, else the workflow's."""
+        if self.loading is not None:
+            return self.loading
+        from handfe.grasp.config import load_workflow
+
+        return load_workflow(self.workflow_path()).loading
+
+    def _check_muscles_act(self) -> None:
+        """A muscle-force parameter with kinematic loading would give every case the
+        baseline's numbers (the angles mode closes each digit to a set force and never reads
+        the muscle forces): refused instead of tabulating zero changes."""
+        muscles = [(i, p) for i, p in enumerate(self.parameters) if p not in MATERIAL_PARAMETERS]
+        if not muscles or self.baseline_loading() == "muscles":
+            return
+        i, p = muscles[0]
+        where = ("'loading' = 'angles'" if self.loading is not None else
+                 f"its workflow {self.workflow!r} has loading = 'angles'")
+        raise ConfigError(
+            f"{self.source}: 'parameters[{i}]' = {p!r}: a muscle force only acts with "
+            f"loading = 'muscles', and {where} (digits closed to a set force: every {p} case "
+            "would equal the baseline). Set loading = \"muscles\" in the study, or perturb "
+            "only the materials")
 
     def allowed_parameters(self) -> tuple[str, ...]:
         if self.kind == "grasp":
