@@ -131,6 +131,18 @@ def test_bad_input(geom):
         build_fingertip_mesh(geom, level="reduced", layered=True, skin_thickness_mm=10.0)
 
 
+@pytest.mark.parametrize("argv,needle", [
+    (["--h-pad", "3"], "--h-pad must be within 0.2 mm..the global size 2.5 mm, got 3.0"),
+    (["--h", "9"], "--h must be within 0.2..5 mm, got 9.0"),
+])
+def test_cli_size_errors_name_the_flag(argv, needle, capsys):
+    """Bad sizes are refused before any meshing, naming the command-line flag."""
+    from handfe.cli import main
+
+    assert main(["fingertip", "--force", "1", "--out", "unused", *argv]) == 2
+    assert needle in capsys.readouterr().err
+
+
 @pytest.mark.mpi
 def test_tags_present(fm):
     comm = fm.mesh.comm

@@ -113,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     from mpi4py import MPI
 
     from handfe.errors import InputError
+    from handfe.fingertip import mesh_sizes
     from handfe.fingertip_scene import FingertipConfig
     from handfe.fingertip_scene import run as run_scene
     from handfe.parallel import rprint
@@ -123,8 +124,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--force {args.force:g}: the plate force must be positive (N)")
     if args.indent is not None and not args.indent > 0:
         raise InputError(f"--indent {args.indent:g}: the plate travel must be positive (mm)")
-    if args.h is not None and not 0.2 <= args.h <= 5.0:
-        raise InputError(f"--h {args.h:g}: element size must be within 0.2..5 mm")
+    try:  # the sizes are checked again where the mesh is made; here with the flags' names
+        mesh_sizes(args.mesh, args.h, args.h_pad)
+    except InputError as exc:
+        raise InputError(str(exc).replace("h_pad_mm", "--h-pad").replace("h_mm", "--h")
+                         ) from None
     cfg = FingertipConfig(subject=args.subject, angle_deg=args.angle, mesh=args.mesh,
                           h_mm=args.h, h_pad_mm=args.h_pad, element=args.element,
                           material=material_from_name(args.material), layered=args.layered,
