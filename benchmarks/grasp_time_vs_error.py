@@ -9,6 +9,16 @@ need") is part of every run; its saving is in the summary's ``skipped``.
     .venv/bin/python benchmarks/grasp_time_vs_error.py --grasps precision --levels coarse,reduced
     mpirun -n 2 .venv/bin/python benchmarks/grasp_time_vs_error.py --out results/bench_grasp
 
+A whole-hand run at ``reduced`` takes about an hour on 2 cores, so finished ``handfe run``
+folders can stand in for runs (``--from-runs GRASP:LEVEL=DIR,...``; each DIR holds the run's
+summary.json, regions.csv and fingertips.csv, its wall time is the summary's ``wall_s``; a
+run marked partial or failed is refused):
+
+    mpirun -n 2 .venv/bin/handfe run workflows/cylindrical.toml --mesh coarse --out R/cyl_c
+    mpirun -n 2 .venv/bin/handfe run workflows/cylindrical.toml --mesh reduced --out R/cyl_r
+    .venv/bin/python benchmarks/grasp_time_vs_error.py --grasps cylindrical \
+        --levels coarse,reduced --from-runs cylindrical:coarse=R/cyl_c,cylindrical:reduced=R/cyl_r
+
 Writes CSV (stdout and OUT/grasp_time_vs_error.csv), the region tables of every level
 (OUT/grasp_regions_by_level.csv) and OUT/grasp_time_vs_error.png.
 """
@@ -16,9 +26,12 @@ Writes CSV (stdout and OUT/grasp_time_vs_error.csv), the region tables of every 
 from __future__ import annotations
 
 import argparse
+import csv
+import json
 import statistics
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from mpi4py import MPI
@@ -31,6 +44,36 @@ REGIONS = ("thumb", "index", "middle", "ring", "little", "palm")
 DIGITS = REGIONS[:5]
 
 
+def parse_from_runs(spec: str) -> dict[tuple[str, str], Path]:
+    """``GRASP:LEVEL=DIR,...`` -> {(grasp, level): DIR}."""
+    out = {}
+    for item in filter(None, (x.strip() for x in spec.split(","))):
+        key, sep, d = item.partition("=")
+        g, sep2, lv = key.partition(":")
+        if not (sep and sep2 and g and lv and d):
+            raise SystemExit(f"--from-runs {item!r}: expected GRASP:LEVEL=DIR")
+        out[(g, lv)] = Path(d)
+    return out
+
+
+def load_run(d: Path) -> tuple[SimpleNamespace, float]:
+    """A finished ``handfe run`` folder as (result with .summary/.regions/.fingertips, wall s)."""
+    try:
+        summary = json.loads((d / "summary.json").read_text())
+        with (d / "regions.csv").open() as fh:
+            regions = {r.pop("region"): {k: float(v) for k, v in r.items()}
+                       for r in csv.DictReader(fh)}
+        with (d / "fingertips.csv").open() as fh:
+            tips = {r.pop("digit"): {k: float(v) for k, v in r.items()}
+                    for r in csv.DictReader(fh)}
+    except (OSError, ValueError, KeyError) as exc:
+        raise SystemExit(f"--from-runs {d}: not a finished handfe run folder ({exc})") from None
+    if summary.get("status") != "done":
+        raise SystemExit(f"--from-runs {d}: run status {summary.get('status')!r}, not 'done'")
+    return SimpleNamespace(summary=summary, regions=regions, fingertips=tips), \
+        float(summary["wall_s"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -41,14 +84,21 @@ def main() -> None:
     ap.add_argument("--loading", default=None, choices=("muscles", "angles"),
                     help="override the workflows' loading mode")
     ap.add_argument("--repeats", type=int, default=1, help="timed runs per point (median)")
+    ap.add_argument("--from-runs", default="", metavar="GRASP:LEVEL=DIR,...",
+                    help="use finished `handfe run` output folders instead of running these "
+                    "(grasp, level) points (wall time = their summary's wall_s)")
     ap.add_argument("--out", default="results/bench_grasp", help="output folder")
     a = ap.parse_args()
+    stored = parse_from_runs(a.from_runs)
     comm = MPI.COMM_WORLD
     out = Path(a.out)
     rows, regions = [], []
     for g in a.grasps.split(","):
         runs = {}
         for lv in a.levels.split(","):
+            if (g, lv) in stored:
+                runs[lv] = load_run(stored[(g, lv)])
+                continue
             times = []
             res = None
             for _ in range(a.repeats):
@@ -116,7 +166,8 @@ def main() -> None:
                             xycoords=("data", "axes fraction"), rotation=90, fontsize=7)
         ax.set_xlabel("wall time (s)")
         ax.set_ylabel("max relative error vs finest level")
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
         ax.grid(True, which="both", alpha=0.3)
         fig.tight_layout()
         fig.savefig(out / "grasp_time_vs_error.png")

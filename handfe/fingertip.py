@@ -538,7 +538,7 @@ def build_fingertip_mesh(geom: FingertipGeometry, *, level: str = "default",
     if comm.rank == 0:
         import gmsh
 
-        from handfe.anatomy.meshing import ensure_gmsh, release_gmsh
+        from handfe.gmshutil import ensure_gmsh, release_gmsh
         from handfe.meshcache import open_cached, write_mesh
 
         ensure_gmsh(gmsh)

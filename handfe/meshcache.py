@@ -55,7 +55,7 @@ def open_cached(gmsh, path: Path | None) -> bool:
     cannot be read (the file is then deleted and gmsh re-initialised, ready to mesh)."""
     if path is None or not path.exists():
         return False
-    from handfe.anatomy.meshing import ensure_gmsh, release_gmsh
+    from handfe.gmshutil import ensure_gmsh, release_gmsh
 
     try:
         gmsh.open(str(path))

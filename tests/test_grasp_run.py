@@ -5,10 +5,11 @@ checked for physics; the 1-rank command for comparison::
 
     .venv/bin/handfe run workflows/precision.toml --mesh coarse --out R
 
-A pinch whose digits close to 1 N runs in CI (~4 min); the 5 N pinch is opt-in
-(``HANDFE_GRASP_E2E=1 make test-mpi``): a run takes ~10-20 min on the 2-core machine
-(docs/grasp.md, measured runs). gmsh's HXT meshes are not bit-reproducible, so no stored 1- vs
-2-rank value is compared here (open).
+A pinch whose digits close to 1 N runs in CI (~4 min), then again on rank 0 alone to compare
+1 and 2 ranks on the same mesh (the mesh cache hands the 2-rank run's mesh to the 1-rank one:
+gmsh's HXT meshes are not bit-reproducible, so stored values from another meshing are not
+compared). The 5 N pinch is opt-in (``HANDFE_GRASP_E2E=1 make test-mpi``): a run takes
+~10-20 min on the 2-core machine (docs/grasp.md, measured runs).
 """
 
 import json
@@ -76,27 +77,38 @@ def test_precision_angles_two_ranks(tmp_path_factory):
 
 
 
+def _light_pinch_workflow():
+    from dataclasses import replace
+
+    from handfe.grasp.config import load_workflow
+
+    wf = load_workflow("precision")
+    return replace(wf, mesh="coarse", loading="angles",
+                   solver=replace(wf.solver, digit_force_N=1.0),
+                   outputs=replace(wf.outputs, fields=False))
+
+
+@pytest.fixture(scope="module")
+def light_pinch(tmp_path_factory):
+    """The CI-sized pinch on 2 ranks (each digit closes to 1 N instead of 5 N), run once for
+    the tests below: (workflow, result, output folder)."""
+    wf = _light_pinch_workflow()
+    out = tmp_path_factory.mktemp("precision_light") if COMM.rank == 0 else None
+    out = COMM.bcast(out, root=0)
+    return wf, run_workflow(wf, out_dir=out, progress=False), out
+
+
 @pytest.mark.mpi
 @pytest.mark.slow
 @pytest.mark.skipif(COMM.size == 1, reason="2-rank regression; runs under make test-mpi")
-def test_precision_light_grip_end_to_end_two_ranks(tmp_path_factory):
+def test_precision_light_grip_end_to_end_two_ranks(light_pinch):
     """CI-sized pinch: the whole workflow (posture, placement, pre-closing, partial meshing,
     kinematic closing, Uzawa phase, outputs) with each digit closing to 1 N instead of 5 N (the
     5 N run is the opt-in test above). Checks object equilibrium, the 0.01 mm penetration
     target, that ring and little (not meshed) carry nothing, and the files. 224 s on 2 ranks
     (1 Dec 2026: placement 25 s, meshing 53 s with two HXT retries, solve 142 s, 8 closing steps,
     191 Newton iterations, 17 Uzawa updates, penetration 0.0024 mm, digits 1.1-1.3 N)."""
-    from dataclasses import replace
-
-    from handfe.grasp.config import load_workflow
-
-    wf = load_workflow("precision")
-    wf = replace(wf, mesh="coarse", loading="angles",
-                 solver=replace(wf.solver, digit_force_N=1.0),
-                 outputs=replace(wf.outputs, fields=False))
-    out = tmp_path_factory.mktemp("precision_light") if COMM.rank == 0 else None
-    out = COMM.bcast(out, root=0)
-    res = run_workflow(wf, out_dir=out, progress=False)
+    wf, res, out = light_pinch
     COMM.barrier()
     s = res.summary
     assert s["status"] == "done"
@@ -112,3 +124,30 @@ def test_precision_light_grip_end_to_end_two_ranks(tmp_path_factory):
     if COMM.rank == 0:
         for f in ("regions.csv", "fingertips.csv", "summary.json", "pressure.png"):
             assert (out / f).is_file(), f
+
+
+@pytest.mark.mpi
+@pytest.mark.slow
+@pytest.mark.skipif(COMM.size != 2, reason="1- vs 2-rank comparison; runs under make test-mpi")
+def test_precision_light_grip_one_rank_matches_two_ranks(light_pinch):
+    """The same pinch on rank 0 alone (COMM_SELF; the hand mesh comes from the mesh cache the
+    2-rank run filled, so both solve on the same mesh): the same closing path and the same
+    digit forces, grip, region forces and areas."""
+    wf, res2, _ = light_pinch
+    one = None
+    if COMM.rank == 0:
+        r1 = run_workflow(wf, out_dir=None, comm=MPI.COMM_SELF, progress=False)
+        one = (r1.summary, r1.regions)
+    s1, reg1 = COMM.bcast(one, root=0)
+    s2, reg2 = res2.summary, res2.regions
+    assert s1["status"] == s2["status"] == "done"
+    assert s1["dofs"] == s2["dofs"]
+    assert s1["load_steps"] == s2["load_steps"]
+    assert s1["grip_force_N"] == pytest.approx(s2["grip_force_N"], rel=1e-5)
+    for d in ("thumb", "index", "middle"):
+        assert s1["digit_force_N"][d] == pytest.approx(s2["digit_force_N"][d], rel=1e-5), d
+    for k in reg2:
+        for m in ("normal_force_N", "tangential_force_N"):
+            assert reg1[k][m] == pytest.approx(reg2[k][m], rel=1e-4, abs=1e-6), (k, m)
+        assert reg1[k]["contact_area_mm2"] == pytest.approx(reg2[k]["contact_area_mm2"],
+                                                            rel=1e-3, abs=1e-3), k

@@ -27,6 +27,7 @@ from handfe.anatomy.skeleton import Skeleton, build_skeleton, check_bones
 from handfe.anatomy.subject import Anthropometry
 from handfe.anatomy.tables import bones as bone_table
 from handfe.errors import InputError
+from handfe.gmshutil import ensure_gmsh, release_gmsh  # noqa: F401 (re-exported)
 from handfe.kinematics import DIGITS, Pose
 from handfe.paths import ANATOMY_DIR
 
@@ -50,7 +51,6 @@ PHALANGES = ("proximal", "middle", "distal")
 SKIN_OUTER_GMSH = 100
 WRIST_TAG, CUT_TAG = 90, 91
 BONE_TAG0 = 201
-_GMSH_READY = False
 EXTRA_OPTIMIZE: tuple[str, ...] = ()
 ALGORITHM_3D = 10  # HXT (gmsh's Netgen optimiser is not compiled into Debian's gmsh 4.8)
 
@@ -365,30 +365,6 @@ def _mesh_rank0(gmsh, skel: Skeleton, digits: tuple[str, ...], level: str,
         "meshing_time_s": round(t2 - t0, 2),
     }
     return {"quality": quality, "surface": surf}
-
-
-def ensure_gmsh(gmsh) -> None:
-    """Initialise gmsh once per process (gmsh 4.8 has no ``isInitialized()``): every module that
-    meshes goes through this and :func:`release_gmsh`, so that one finalising gmsh (the
-    fingertip scene did) does not leave the others calling into a finalised library."""
-    global _GMSH_READY
-    if not _GMSH_READY:
-        gmsh.initialize(readConfigFiles=False)
-        _GMSH_READY = True
-
-
-def release_gmsh(gmsh) -> None:
-    """Finalise gmsh; the next :func:`ensure_gmsh` initialises it afresh. Every mesher calls it
-    when done: gmsh options are global and outlive ``gmsh.model.remove()`` (the hand's
-    ``Mesh.MeshSizeMax`` once capped a later mesh's elements), and a failed HXT run leaves
-    gmsh 4.8 unable to mesh anything in the same session (every later model comes back
-    empty)."""
-    global _GMSH_READY
-    try:
-        gmsh.finalize()
-    except Exception:  # already unusable: nothing more to release
-        pass
-    _GMSH_READY = False
 
 
 def _outer_triangles(model, occ_hand, X: np.ndarray, skel: Skeleton, digits: tuple[str, ...]
