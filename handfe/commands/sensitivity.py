@@ -10,7 +10,9 @@ changed alone by each level (% of its baseline value). Parameters: 'skin' / 'sub
 (the uniaxial nominal stress of the tissue's Ogden N=3 set scaled by 1 + level at fixed strain,
 then re-fitted by least squares; a poor or Drucker-unstable refit is flagged and, by default,
 not run), a muscle name (FDS, FDP, AP, FPB, ...: that muscle force x (1 + level)) for grasp
-studies, or 'force' (plate force) for fingertip studies.
+studies with muscle-driven loading (study or workflow key loading = "muscles"; the kinematic
+closing never reads the muscle forces, so such a study is refused), or 'force' (plate force)
+for fingertip studies.
 
 Cases run concurrently: the MPI ranks are split into groups of --ranks-per-case ranks, one case
 per group. Each finished case is written at once to OUT/cases/<case-id>.json (metrics, refit,
@@ -30,7 +32,7 @@ Writes into OUT (built from the case files only):
 Units: areas mm^2, pressures kPa, forces N, deflection mm, levels and changes in %.
 
 Examples:
-  handfe sensitivity sensitivity/precision_small.toml --out results/sensitivity/ft_small
+  handfe sensitivity sensitivity/fingertip_small.toml --out results/sensitivity/fingertip_small
   mpirun -n 2 handfe sensitivity sensitivity/cylindrical.toml --mesh reduced \\
       --out results/sensitivity/cylindrical
 """
