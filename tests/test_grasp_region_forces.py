@@ -90,3 +90,22 @@ def test_mean_pressure_ignores_a_dust_of_tiny_nodal_forces():
                                                    / r["contact_area_mm2"], rel=1e-6)
     assert r["peak_pressure_kPa"] == pytest.approx(1000.0)
     assert r["normal_force_N"] == pytest.approx(2.0, rel=1e-6)
+
+
+def test_pressure_map_draws_loaded_facets_over_the_skin_in_front(tmp_path):
+    """A loaded pad facing into the closed hand (behind unloaded skin in the palmar view) is
+    still seen: its colour, not the skin's grey, fills the centre of the picture."""
+    import matplotlib.image as mpimg
+
+    from handfe.grasp.outputs import pressure_map_png
+
+    tri = np.array([[-10.0, -10.0, 0.0], [10.0, -10.0, 0.0], [0.0, 10.0, 0.0]])
+    xf = np.stack([tri + [0, 0, -5.0], tri + [0, 0, 5.0]])  # loaded behind, skin in front
+    p = np.array([[0.1, 0.1, 0.1], [0.0, 0.0, 0.0]])  # MPa
+    fd = {"xf": xf, "p": p, "codes": np.array([INDEX_DISTAL] * 2)}
+    pressure_map_png(fd, np.eye(3), tmp_path / "p.png", MPI.COMM_SELF)
+    img = mpimg.imread(tmp_path / "p.png")
+    ax_px = img[:, : int(0.75 * img.shape[1])]  # left of the colour bar
+    grey = np.all(np.abs(ax_px[..., :3] - 0.85) < 0.02, axis=-1)
+    dark = np.all(ax_px[..., :3] < 0.3, axis=-1)  # 100 kPa = the top of inferno_r: near black
+    assert dark.sum() > 20 * grey.sum()

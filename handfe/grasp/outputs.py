@@ -187,7 +187,9 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
 def pressure_map_png(fd: dict, hand_R: np.ndarray, path: Path, comm: MPI.Comm, *,
                      title: str = "", obstacle_outline=None) -> None:
     """Palmar view (looking at the palm along hand -z) of the deformed skin, coloured by contact
-    pressure (kPa), grey where there is none; region borders drawn in black."""
+    pressure (kPa), grey where there is none; region borders drawn in black. The loaded facets
+    are drawn over the unloaded ones whatever their depth: in a power grasp the pads face the
+    object inside the closed hand and the skin around them would hide them."""
     loc = (fd["xf"], fd.get("p_node", fd["p"]), fd["codes"])
     allp = comm.gather(loc, root=0)
     if comm.rank != 0:
@@ -203,12 +205,14 @@ def pressure_map_png(fd: dict, hand_R: np.ndarray, path: Path, comm: MPI.Comm, *
     codes = np.concatenate([a[2] for a in allp])
     xh = xf @ hand_R  # world -> hand frame coordinates (rows)
     depth = xh[:, :, 2].mean(axis=1)
-    order = np.argsort(depth)  # palmar (+z) last = on top
-    xy = xh[order][:, :, :2]  # seen from the palmar side: radial (+x) on the right
-    pf = p[order].mean(axis=1)
+    pf = p.mean(axis=1)
     vmax = max(float(pf.max(initial=0.0)), 1e-9)
+    loaded = pf > 1e-3 * vmax
+    order = np.lexsort((depth, loaded))  # unloaded, then loaded; palmar (+z) last = on top
+    xy = xh[order][:, :, :2]  # seen from the palmar side: radial (+x) on the right
+    pf, loaded = pf[order], loaded[order]
     cmap = plt.get_cmap("inferno_r")
-    colors = np.where((pf > 1e-3 * vmax)[:, None], cmap(np.clip(pf / vmax, 0, 1)),
+    colors = np.where(loaded[:, None], cmap(np.clip(pf / vmax, 0, 1)),
                       np.array([0.85, 0.85, 0.85, 1.0]))
     fig, ax = plt.subplots(figsize=(6.5, 8), dpi=110)
     ax.add_collection(PolyCollection(xy, facecolors=colors, edgecolors="none"))
