@@ -30,11 +30,11 @@ def run(args: argparse.Namespace) -> int:
     # the furthest stage of the pipeline that exists is run; earlier stages are quick checks
     if importlib.util.find_spec("handfe.commands.run") and (
             Path(__file__).resolve().parents[2] / "workflows" / "cylindrical.toml").exists():
-        # the whole-hand cylindrical grasp on the coarse mesh (~20-40 min on 2 cores); the
-        # reduced mesh (93k dofs) costs ~10 s per Newton iteration today (docs/grasp.md)
+        # the whole-hand cylindrical grasp at the workflow's level, reduced (93k dofs): 39 min
+        # on 2 cores (2 Dec 2026, docs/grasp.md); `handfe run ... --mesh coarse` takes ~25 min
         wf = str(Path(__file__).resolve().parents[2] / "workflows" / "cylindrical.toml")
-        steps.append(("cylindrical power grasp, whole hand, coarse mesh", [
-            "run", wf, "--mesh", "coarse", "--out", str(out / "cylindrical")]))
+        steps.append(("cylindrical power grasp, whole hand, reduced mesh", [
+            "run", wf, "--mesh", "reduced", "--out", str(out / "cylindrical")]))
     elif importlib.util.find_spec("handfe.commands.fingertip"):
         steps.append(("fingertip compression, 15 deg, 2 N", [
             "fingertip", "--angle", "15", "--force", "2", "--mesh", "reduced", "--out",
