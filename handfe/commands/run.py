@@ -63,6 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     from handfe.grasp import run_workflow
 
-    run_workflow(args.workflow, mesh=args.mesh, out_dir=Path(args.out), loading=args.loading,
-                 progress=not args.quiet)
-    return 0
+    res = run_workflow(args.workflow, mesh=args.mesh, out_dir=Path(args.out),
+                       loading=args.loading, progress=not args.quiet)
+    # "unbalanced": results written but not a converged state (the warning said why)
+    return 0 if res.summary.get("status") == "done" else 1

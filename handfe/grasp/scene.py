@@ -162,6 +162,11 @@ def _pose_for(wf: Workflow, grasp, subject_dir: Path):
     return Pose.from_toml(p), str(p)
 
 
+#: a finished run whose object force and support reactions differ by more than this
+#: (relative) ends with status "unbalanced" instead of "done"
+EQUILIBRIUM_RTOL = 1e-6
+
+
 def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                  out_dir: Path | str | None = None, comm: MPI.Comm = MPI.COMM_WORLD,
                  materials: Mapping[str, Ogden] | None = None,
@@ -374,6 +379,14 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         t0 = time.perf_counter()
         regs, tips = _write_outputs(scene, summary, out, wf, grasp, mode, H, comm)
         stages["outputs"] = time.perf_counter() - t0
+        eq = summary.get("equilibrium_relative_error")
+        if eq is not None and not eq <= EQUILIBRIUM_RTOL:
+            # never a silently wrong table: the outputs are written, the status says so
+            checkpoint("unbalanced")
+            say(f"WARNING: the final state is not in equilibrium (object force vs support "
+                f"reactions {eq:.2g} relative, tolerance {EQUILIBRIUM_RTOL:g}): the written "
+                "results are not a converged solution")
+            return GraspResult(regs, summary, out, tips)
         checkpoint("done")
         say(f"done in {summary['wall_s']:.1f} s: grip force {summary['grip_force_N']:.1f} N, "
             f"max penetration {summary['max_penetration_mm']:.4f} mm")
