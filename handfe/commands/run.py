@@ -59,11 +59,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
     from pathlib import Path
 
     from handfe.grasp import run_workflow
+    from handfe.parallel import rprint
 
     res = run_workflow(args.workflow, mesh=args.mesh, out_dir=Path(args.out),
                        loading=args.loading, progress=not args.quiet)
-    # "unbalanced": results written but not a converged state (the warning said why)
-    return 0 if res.summary.get("status") == "done" else 1
+    status = res.summary.get("status")
+    if status == "done":
+        return 0
+    # "unbalanced": results written but not a converged state; said even with --quiet
+    rprint(f"handfe run: {args.workflow}: status {status!r}, equilibrium error "
+           f"{res.summary.get('equilibrium_relative_error', float('nan')):.2g}: the results in "
+           f"{args.out} are not a converged solution", file=sys.stderr)
+    return 1
