@@ -359,14 +359,17 @@ class _FakeUzawa:
 
         arr = SimpleNamespace(array=np.zeros(1))
         self.contact = SimpleNamespace(
-            lambda_n=SimpleNamespace(x=arr), lambda_t=None, k_n=SimpleNamespace(value=1.0),
+            lambda_n=SimpleNamespace(x=arr), lambda_t=None, u_ref=None,
+            k_n=SimpleNamespace(value=1.0),
             adaptive_penalty=None, last_penetration_mm=0.0, last_creep_mm=0.0,
             penetration_tol_mm=0.01, stick_tol_mm=0.02, augment=self._augment,
             set_penalty=lambda k: setattr(self.contact.k_n, "value", k))
         self.wf = SimpleNamespace(solver=SolverSpec(max_augment=12))
         self.augmentations = 0
         self.converged = 0.0
+        self.max_change = 3.0  # largest multiplier change Newton 'follows'
         self.resolves: list[tuple[float, bool]] = []
+        self._history_due = False
 
     def _augment(self, final):
         lam = self.contact.lambda_n.x.array
@@ -379,7 +382,7 @@ class _FakeUzawa:
 
     def _resolve(self, what, undo):
         lam = float(self.contact.lambda_n.x.array[0])
-        ok = abs(lam - self.converged) <= 3.0
+        ok = abs(lam - self.converged) <= self.max_change
         self.resolves.append((lam - self.converged, ok))
         if ok:
             self.converged = lam
@@ -391,6 +394,21 @@ class _FakeUzawa:
         from handfe.grasp.scene import GraspFE
 
         return GraspFE._relax_multipliers(self, relax, lam, lam_t, new)
+
+    def _contact_data(self):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._contact_data(self)
+
+    def _set_contact_data(self, data):
+        from handfe.grasp.scene import GraspFE
+
+        GraspFE._set_contact_data(self, data)
+
+    def _apply_history(self):
+        from handfe.grasp.scene import GraspFE
+
+        GraspFE._apply_history(self)
 
 
 def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
@@ -404,6 +422,57 @@ def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
     assert all(ok for _, ok in fake.resolves[3:])
     assert fake.contact.last_penetration_mm <= 0.01
     assert abs(fake.converged - 10.0) <= 1.0
+
+
+def _with_stick_history(fake):
+    """The fake with stick multipliers and a due return mapping that changes them (as
+    RigidContact.on_step does after an accepted step, before any re-solve)."""
+    from types import SimpleNamespace
+
+    fake.contact.lambda_t = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
+
+    def on_step(t, result):
+        fake.contact.lambda_t.x.array[:] += 1.0
+
+    fake.contact.on_step = on_step
+    fake._history_due = True
+    return fake
+
+
+def test_failed_uzawa_update_leaves_the_state_with_the_data_it_balances():
+    # the reduced spherical grasp (2 Dec 2026): the last closing step converged, its friction
+    # return mapping changed the stick multipliers, the final Uzawa update failed at x1, x0.5
+    # and x0.25 - and the run reported the converged state with the changed multipliers, an
+    # equilibrium error of 0.18. Now the phase ends on the data the state was solved with
+    from handfe.grasp.scene import GraspFE
+
+    fake = _with_stick_history(_FakeUzawa())
+    fake.max_change = 0.0  # Newton follows no update
+    GraspFE.augment(fake)
+    assert [ok for _, ok in fake.resolves] == [False, False, False]
+    assert fake.contact.lambda_n.x.array[0] == 0.0
+    assert np.all(fake.contact.lambda_t.x.array == 0.0)  # the return mapping is still due
+    assert fake._history_due
+    assert fake.contact.k_n.value == 1.0
+
+
+def test_uzawa_phase_with_nothing_to_do_leaves_the_return_mapping_due():
+    from handfe.grasp.scene import GraspFE
+
+    fake = _with_stick_history(_FakeUzawa())
+    fake.contact.lambda_n.x.array[0] = 10.0  # already exact: no update
+    GraspFE.augment(fake)
+    assert fake.resolves == []
+    assert np.all(fake.contact.lambda_t.x.array == 0.0) and fake._history_due
+
+
+def test_converged_uzawa_update_applies_the_return_mapping_first():
+    from handfe.grasp.scene import GraspFE
+
+    fake = _with_stick_history(_FakeUzawa())
+    GraspFE.augment(fake)
+    assert fake.resolves[-1][1] and not fake._history_due
+    assert np.all(fake.contact.lambda_t.x.array == 1.0)  # applied once, not undone
 
 
 class _FakeMuscles:
