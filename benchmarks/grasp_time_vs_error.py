@@ -110,6 +110,11 @@ def main() -> None:
                     res = None
                     break
                 times.append(time.perf_counter() - t0)
+                status = res.summary.get("status")
+                if status != "done":  # an unbalanced run's areas are no error measure
+                    rprint(f"# {g} {lv}: run ended {status!r}, not 'done': left out")
+                    res = None
+                    break
             if res is not None:
                 runs[lv] = (res, statistics.median(times))
         if not runs:

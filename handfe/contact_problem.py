@@ -176,6 +176,7 @@ class RigidContact:
         self.last_penetration_mm = float("nan")
         self.last_creep_mm = 0.0
         self.max_penalty_growth = 64.0
+        self.history_due = False  # on_step(defer=True) waiting for apply_history()
 
     @property
     def k_t(self) -> float:
@@ -258,9 +259,15 @@ class RigidContact:
         self.set_penalty(self.k_n_value)
         self.last_penetration_mm = float("nan")
 
-    def on_step(self, t: float, result: Any) -> None:
+    def on_step(self, t: float, result: Any, *, defer: bool = False) -> None:
         """After an accepted load step: the Coulomb return mapping of the stick anchor
         (friction with memory); the obstacle's anchor translation stays 0.
+
+        The mapping changes the stick multipliers and anchors, so the converged state no
+        longer balances the contact data until the next solve (a sheared, stuck block: the
+        contact's friction force 3 % off the support reaction). ``defer=True`` only marks it
+        due; :meth:`apply_history` applies it, called just before the next solve (e.g. in
+        the load setter), so a state that is reported balances the data it was solved with.
 
         Penalty friction: nodes that stuck keep their anchor, so stick persists over load
         steps; nodes that slipped move their anchor to twice the slip limit mu p / k_t; nodes
@@ -270,6 +277,10 @@ class RigidContact:
         current position (the multiplier keeps their traction), stuck nodes keep it."""
         if self.u_ref is None:
             return
+        if defer:
+            self.history_due = True
+            return
+        self.history_due = False
         self._slip.interpolate(self._slip_expr)
         self._pnode.interpolate(self._p_expr)
         s = self._slip.x.array.reshape(-1, 3)
@@ -283,6 +294,11 @@ class RigidContact:
             shift = friction_anchor_update(s, p, self.mu, self.k_t, margin=2.0)
         self.u_ref.x.array[:] += shift.reshape(-1)
         self.u_ref.x.scatter_forward()
+
+    def apply_history(self) -> None:
+        """The return mapping :meth:`on_step` deferred, if it is still due."""
+        if self.history_due:
+            self.on_step(1.0, None)
 
     def metrics(self, axes=((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
                 symmetry_normal=None, area: str = "nodal") -> ContactMetrics:

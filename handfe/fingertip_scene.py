@@ -320,10 +320,12 @@ class FingertipCompression:
         d0 = self.deflection
 
         def set_load(t: float) -> None:
+            self.contact.apply_history()  # the last accepted step's friction return mapping
             self._set_plate(d0 + t * (d_target - d0))
 
         def on_step(t: float, r) -> None:
-            self.contact.on_step(t, r)
+            # deferred to the next set_load: the reported state balances its contact data
+            self.contact.on_step(t, r, defer=True)
             self.deflection = d0 + t * (d_target - d0)
             if on_point is not None:
                 on_point(self.deflection)

@@ -12,11 +12,10 @@ Contact force on the body: ``int (p n + t_T) da`` over the contact facets, assem
 
 The obstacle force must be evaluated in the state the last Newton solve balanced. Since the
 fixes on issue 3, ``solve`` leaves the multipliers of that state (the penetration is checked
-before any Uzawa update: ``test_metrics_after_solve_balance_reaction_frictionless``), but
-``RigidContact.on_step`` still return-maps the nodal stick anchor after the last step, which
-changes the friction traction at quadrature points next to stuck nodes (strict xfail
-``test_metrics_after_solve_report_friction_force``). The exact check therefore keeps the anchor
-of the last step and runs one more Newton solve before measuring.
+before any Uzawa update: ``test_metrics_after_solve_balance_reaction_frictionless``), and the
+return mapping of the nodal stick anchor (``RigidContact.on_step``) waits for the next load
+(``defer=True``): applied right after the last step it changes the friction traction at
+quadrature points next to stuck nodes (``test_immediate_return_mapping_changes_...``).
 """
 
 from __future__ import annotations
@@ -62,27 +61,27 @@ def _scene(mu: float, comm, pen_tol: float = PEN_TOL, disc: str = "p2",
     return prob, ft, top, platen, contact
 
 
-def _load(prob, platen, contact, *, keep_last_anchor: bool, slide: bool = True) -> None:
-    """Press DELTA, then (``slide``) slide SLIDE along x (two solves). ``keep_last_anchor``: do
-    not move the stick anchor after the very last step (t_T stays that of the last solve)."""
+def _load(prob, platen, contact, *, defer_history: bool, slide: bool = True) -> None:
+    """Press DELTA, then (``slide``) slide SLIDE along x (two solves). ``defer_history``: the
+    friction return mapping of each step waits for the next step's load (RigidContact.on_step
+    ``defer=True``), so the final state keeps the anchor it was solved with; else it is applied
+    right after each step, the last one included."""
     from handfe.solver import LoadStepping, solve
 
-    def on_last(t, r):
-        if t < 1.0 - 1e-12:
-            contact.on_step(t, r)
+    def on_step(t, r):
+        contact.on_step(t, r, defer=defer_history)
 
     segments = [((0.0, 0.0, 0.0), (0.0, 0.0, -DELTA)), ((0.0, 0.0, -DELTA), (SLIDE, 0.0, -DELTA))]
     if not slide:
         segments = segments[:1]
-    for k, (a, b) in enumerate(segments):
+    for a, b in segments:
         a, b = np.array(a), np.array(b)
 
         def set_load(t, a=a, b=b):
+            contact.apply_history()
             platen.value = a + t * (b - a)
 
-        last = k == len(segments) - 1
-        solve(prob, set_load, augment=contact.augment,
-              on_step=on_last if (last and keep_last_anchor) else contact.on_step,
+        solve(prob, set_load, augment=contact.augment, on_step=on_step,
               stepping=LoadStepping(initial=0.25, min_step=1.0 / 256, max_step=0.25))
 
 
@@ -110,7 +109,7 @@ def test_reaction_plus_contact_force_is_zero(mu):
 
     comm = MPI.COMM_WORLD
     prob, ft, top, platen, contact = _scene(mu, comm)
-    _load(prob, platen, contact, keep_last_anchor=True)
+    _load(prob, platen, contact, defer_history=True)
     newton = NewtonSolver(prob)  # balance the state with the final multipliers
     ok, _, _, reason = newton.solve()
     newton.destroy()
@@ -136,34 +135,42 @@ def test_metrics_after_solve_balance_reaction_frictionless():
     forces reported right after solve() were 24 % off the balanced state (fixed: the penetration
     is checked before any update)."""
     prob, ft, top, platen, contact = _scene(0.0, MPI.COMM_SELF, pen_tol=0.01)
-    _load(prob, platen, contact, keep_last_anchor=False, slide=False)
+    _load(prob, platen, contact, defer_history=False, slide=False)
     R = prob.reaction(top)
     m = contact.metrics()
     np.testing.assert_allclose(np.array(m.force_vector_N) + R, 0.0,
                                atol=1e-6 * np.linalg.norm(R))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "the stick anchor is nodal (P2) while stick/slip is decided per quadrature point: the "
-    "return mapping in RigidContact.on_step changes the traction at quadrature points next to "
-    "stuck nodes, so the friction force reported after solve() is 1.27 N for a 1.48 N reaction "
-    "(was 0 before the return mapping). Needs a quadrature-point history of the anchor; with "
-    "P1 and the vertex contact rule all of it is nodal and the force is exact (test below)."))
 def test_metrics_after_solve_report_friction_force():
+    """The return mapping of the last step deferred (on_step(defer=True), applied by the next
+    load): the friction force reported after solve() is the reaction's. Applied at once it was
+    1.27 N for a 1.48 N reaction: the stick anchor is nodal (P2) while stick/slip is decided per
+    quadrature point, so the mapping changes the traction next to stuck nodes (test below)."""
     prob, ft, top, platen, contact = _scene(0.74, MPI.COMM_SELF)
-    _load(prob, platen, contact, keep_last_anchor=False)
+    _load(prob, platen, contact, defer_history=True)
     R = prob.reaction(top)
     m = contact.metrics()
     assert m.tangential_force_N == pytest.approx(float(np.linalg.norm(R[:2])), rel=1e-3)
 
 
+def test_immediate_return_mapping_changes_the_friction_force():
+    """Why on_step is deferred: applied right after the last step, the mapping leaves the
+    Gauss-rule friction force of the reported state 14 % off the reaction (1.27 vs 1.48 N)."""
+    prob, ft, top, platen, contact = _scene(0.74, MPI.COMM_SELF)
+    _load(prob, platen, contact, defer_history=False)
+    R = prob.reaction(top)
+    m = contact.metrics()
+    assert abs(m.tangential_force_N / float(np.linalg.norm(R[:2])) - 1.0) > 0.05
+
+
 def test_vertex_quadrature_reports_the_friction_force_after_solve():
     """With P1 and the vertex contact rule, stick/slip, the anchor and the force all live at the
-    nodes: the friction force reported right after solve() (anchor return-mapped) is the
-    reaction's, which the Gauss rule misses (xfail above)."""
+    nodes: even with the anchor return-mapped right after the last step the friction force is
+    the reaction's (the Gauss rule then misses it, test above)."""
     prob, ft, top, platen, contact = _scene(0.74, MPI.COMM_SELF, disc="p1",
                                             quadrature="vertex")
-    _load(prob, platen, contact, keep_last_anchor=False)
+    _load(prob, platen, contact, defer_history=False)
     R = prob.reaction(top)
     m = contact.metrics()
     assert R[2] < -0.5  # pressed

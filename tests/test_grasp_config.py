@@ -360,7 +360,7 @@ class _FakeUzawa:
         arr = SimpleNamespace(array=np.zeros(1))
         self.contact = SimpleNamespace(
             lambda_n=SimpleNamespace(x=arr), lambda_t=None, u_ref=None,
-            k_n=SimpleNamespace(value=1.0),
+            k_n=SimpleNamespace(value=1.0), history_due=False, apply_history=lambda: None,
             adaptive_penalty=None, last_penetration_mm=0.0, last_creep_mm=0.0,
             penetration_tol_mm=0.01, stick_tol_mm=0.02, augment=self._augment,
             set_penalty=lambda k: setattr(self.contact.k_n, "value", k))
@@ -369,7 +369,6 @@ class _FakeUzawa:
         self.converged = 0.0
         self.max_change = 3.0  # largest multiplier change Newton 'follows'
         self.resolves: list[tuple[float, bool]] = []
-        self._history_due = False
 
     def _augment(self, final):
         lam = self.contact.lambda_n.x.array
@@ -429,13 +428,16 @@ def _with_stick_history(fake):
     RigidContact.on_step does after an accepted step, before any re-solve)."""
     from types import SimpleNamespace
 
-    fake.contact.lambda_t = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
+    c = fake.contact
+    c.lambda_t = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
 
-    def on_step(t, result):
-        fake.contact.lambda_t.x.array[:] += 1.0
+    def apply_history():
+        if c.history_due:
+            c.lambda_t.x.array[:] += 1.0
+            c.history_due = False
 
-    fake.contact.on_step = on_step
-    fake._history_due = True
+    c.apply_history = apply_history
+    c.history_due = True
     return fake
 
 
@@ -452,7 +454,7 @@ def test_failed_uzawa_update_leaves_the_state_with_the_data_it_balances():
     assert [ok for _, ok in fake.resolves] == [False, False, False]
     assert fake.contact.lambda_n.x.array[0] == 0.0
     assert np.all(fake.contact.lambda_t.x.array == 0.0)  # the return mapping is still due
-    assert fake._history_due
+    assert fake.contact.history_due
     assert fake.contact.k_n.value == 1.0
 
 
@@ -463,7 +465,7 @@ def test_uzawa_phase_with_nothing_to_do_leaves_the_return_mapping_due():
     fake.contact.lambda_n.x.array[0] = 10.0  # already exact: no update
     GraspFE.augment(fake)
     assert fake.resolves == []
-    assert np.all(fake.contact.lambda_t.x.array == 0.0) and fake._history_due
+    assert np.all(fake.contact.lambda_t.x.array == 0.0) and fake.contact.history_due
 
 
 def test_converged_uzawa_update_applies_the_return_mapping_first():
@@ -471,7 +473,7 @@ def test_converged_uzawa_update_applies_the_return_mapping_first():
 
     fake = _with_stick_history(_FakeUzawa())
     GraspFE.augment(fake)
-    assert fake.resolves[-1][1] and not fake._history_due
+    assert fake.resolves[-1][1] and not fake.contact.history_due
     assert np.all(fake.contact.lambda_t.x.array == 1.0)  # applied once, not undone
 
 

@@ -661,12 +661,6 @@ class GraspFE:
         self.translation0 = np.asarray(shift, dtype=float).copy()
         self.force_target = np.zeros(3)  # N: net contact force the object must carry
         self._t_response: list[np.ndarray] = []  # du/dt_c (tangent predictor of a translation)
-        # the Coulomb return mapping of the last accepted step (RigidContact.on_step) is
-        # applied just before the next solve, not right after the step: it changes the stick
-        # multipliers, so until a re-solve the state would no longer balance the contact data.
-        # Deferred, a run that ends on a failed re-solve reports a balanced state (the reduced
-        # spherical grasp ended with an equilibrium error of 0.18 when it was applied at once)
-        self._history_due = False
 
     # -- one boundary-condition step with cutting
     def _go_to(self, theta: np.ndarray, *, label: str, max_cuts: int = 6,
@@ -740,7 +734,11 @@ class GraspFE:
             if ok:
                 self._dw = self.problem.w.x.array - w0
                 self._dbc = dbc
-                self._history_due = True
+                # the friction return mapping waits for the next solve: applied now, it
+                # changes the stick multipliers and a run ending on a failed re-solve would
+                # report a state out of balance with them (the reduced spherical grasp
+                # ended with an equilibrium error of 0.18 that way)
+                self.contact.on_step(frac, None, defer=True)
                 self.steps.append({"step": label, "fraction": frac, "newton": its,
                                    "residual": self.solver.history[-1] if self.solver.history
                                    else 0.0})
@@ -775,15 +773,13 @@ class GraspFE:
 
     def _apply_history(self) -> None:
         """The friction return mapping of the last accepted step, if not yet applied."""
-        if self._history_due:
-            self.contact.on_step(1.0, None)
-            self._history_due = False
+        self.contact.apply_history()
 
     def _contact_data(self) -> dict[str, Any]:
         """The contact data a solve balances (multipliers, stick anchors, penalty) and whether
         the last step's return mapping is still due."""
         c = self.contact
-        data: dict[str, Any] = {"k": float(c.k_n.value), "due": self._history_due}
+        data: dict[str, Any] = {"k": float(c.k_n.value), "due": c.history_due}
         for name in ("lambda_n", "lambda_t", "u_ref"):
             f = getattr(c, name)
             data[name] = None if f is None else f.x.array.copy()
@@ -792,7 +788,7 @@ class GraspFE:
     def _set_contact_data(self, data: dict[str, Any]) -> None:
         c = self.contact
         c.set_penalty(data["k"])
-        self._history_due = data["due"]
+        c.history_due = data["due"]
         for name in ("lambda_n", "lambda_t", "u_ref"):
             if data[name] is not None:
                 getattr(c, name).x.array[:] = data[name]
