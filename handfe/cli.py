@@ -14,7 +14,7 @@ from handfe import __version__
 from handfe.errors import HandFEError
 
 # Order = order in --help. Add a new command by adding its module name here.
-COMMANDS = ("material", "fingertip", "calibrate", "anatomy", "emg", "angles", "run",
+COMMANDS = ("material", "fingertip", "calibrate", "anatomy", "emg", "angles", "run", "plot",
             "sensitivity", "demo")
 
 

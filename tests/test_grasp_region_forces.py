@@ -109,3 +109,34 @@ def test_pressure_map_draws_loaded_facets_over_the_skin_in_front(tmp_path):
     grey = np.all(np.abs(ax_px[..., :3] - 0.85) < 0.02, axis=-1)
     dark = np.all(ax_px[..., :3] < 0.3, axis=-1)  # 100 kPa = the top of inferno_r: near black
     assert dark.sum() > 20 * grey.sum()
+
+
+def test_plot_redraws_a_run_pressure_map_on_a_given_scale(tmp_path, capsys):
+    """``handfe plot RUN`` draws the map again from the facets the run kept, on the colour
+    scale asked for: a 50 kPa pad on a 0-100 kPa scale is mid-scale, not the top colour."""
+    import matplotlib.image as mpimg
+
+    from handfe.cli import main
+    from handfe.grasp.outputs import pressure_map_png
+
+    tri = np.array([[[-10.0, -10.0, 0.0], [10.0, -10.0, 0.0], [0.0, 10.0, 0.0]]])
+    fd = {"xf": tri, "p": np.full((1, 3), 0.05), "codes": np.array([INDEX_DISTAL])}
+    pressure_map_png(fd, np.eye(3), tmp_path / "pressure.png", MPI.COMM_SELF, title="t",
+                     facets_npz=tmp_path / "pressure_facets.npz")
+
+    def dark_px(png):
+        img = mpimg.imread(png)[:, : int(0.75 * mpimg.imread(png).shape[1])]
+        return int(np.all(img[..., :3] < 0.3, axis=-1).sum())
+
+    own = dark_px(tmp_path / "pressure.png")  # own scale: the pad is the top colour
+    assert main(["plot", str(tmp_path), "--vmax", "100", "--out", str(tmp_path / "b.png")]) == 0
+    assert "0-100 kPa" in capsys.readouterr().out
+    assert dark_px(tmp_path / "b.png") < 0.2 * own  # the text and ticks stay dark
+
+
+def test_plot_names_a_folder_without_facets(tmp_path, capsys):
+    from handfe.cli import main
+
+    assert main(["plot", str(tmp_path)]) != 0
+    err = capsys.readouterr().err
+    assert "pressure_facets.npz" in err and "not found" in err

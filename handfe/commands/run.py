@@ -37,6 +37,7 @@ Writes into --out (rank 0):
                   dofs, load steps, Newton iterations, wall time per stage, what was skipped
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
+  pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)
 A failed run writes summary.json with the failed stage and error and exits 2.
 
 Examples:

@@ -185,29 +185,59 @@ def region_metrics(fd: dict, comm: MPI.Comm) -> dict[str, dict[str, float]]:
 
 
 def pressure_map_png(fd: dict, hand_R: np.ndarray, path: Path, comm: MPI.Comm, *,
-                     title: str = "", obstacle_outline=None) -> None:
+                     title: str = "", obstacle_outline=None,
+                     facets_npz: Path | None = None) -> None:
     """Palmar view (looking at the palm along hand -z) of the deformed skin, coloured by contact
-    pressure (kPa), grey where there is none; region borders drawn in black. The loaded facets
-    are drawn over the unloaded ones whatever their depth: in a power grasp the pads face the
-    object inside the closed hand and the skin around them would hide them."""
-    loc = (fd["xf"], fd.get("p_node", fd["p"]), fd["codes"])
-    allp = comm.gather(loc, root=0)
-    if comm.rank != 0:
+    pressure (kPa), grey where there is none; region borders drawn in black (collective; rank 0
+    draws). ``facets_npz``: also keep the gathered facets there, so ``handfe plot`` can draw the
+    map again (another colour scale, another file) without re-running."""
+    data = gather_pressure_facets(fd, comm)
+    if data is None:
         return
+    if facets_npz is not None:
+        np.savez_compressed(facets_npz, hand_R=np.asarray(hand_R, dtype=float),
+                            title=np.array(title), **data)
+    draw_pressure_map(data, hand_R, path, title=title)
+
+
+def gather_pressure_facets(fd: dict, comm: MPI.Comm) -> dict[str, np.ndarray] | None:
+    """The deformed skin facets of every rank on rank 0 (None on the others): ``xf`` (n, 3, 3)
+    vertex positions (mm, world frame), ``p_kPa`` (n, 3) vertex contact pressures, ``codes``
+    (n,) region codes."""
+    allp = comm.gather((fd["xf"], fd.get("p_node", fd["p"]), fd["codes"]), root=0)
+    if comm.rank != 0:
+        return None
+    return {"xf": np.concatenate([a[0] for a in allp]),
+            "p_kPa": np.concatenate([a[1] for a in allp]) * 1e3,
+            "codes": np.concatenate([a[2] for a in allp])}
+
+
+def load_pressure_facets(path: Path) -> tuple[dict[str, np.ndarray], np.ndarray, str]:
+    """(facets, hand rotation, title) that :func:`pressure_map_png` kept in ``path``."""
+    with np.load(path) as z:
+        data = {k: z[k] for k in ("xf", "p_kPa", "codes")}
+        return data, z["hand_R"], str(z["title"])
+
+
+def draw_pressure_map(data: dict[str, np.ndarray], hand_R: np.ndarray, path: Path, *,
+                      title: str = "", vmax_kPa: float | None = None) -> float:
+    """Draw the palmar pressure map of gathered facets (:func:`gather_pressure_facets`) into
+    ``path``; colour scale 0..``vmax_kPa`` (default the largest facet pressure, kPa), returned.
+    The loaded facets are drawn over the unloaded ones whatever their depth: in a power grasp
+    the pads face the object inside the closed hand and the skin around them would hide
+    them."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection, PolyCollection
 
-    xf = np.concatenate([a[0] for a in allp])
-    p = np.concatenate([a[1] for a in allp]) * 1e3
-    codes = np.concatenate([a[2] for a in allp])
+    xf, p, codes = data["xf"], data["p_kPa"], data["codes"]
     xh = xf @ hand_R  # world -> hand frame coordinates (rows)
     depth = xh[:, :, 2].mean(axis=1)
     pf = p.mean(axis=1)
-    vmax = max(float(pf.max(initial=0.0)), 1e-9)
-    loaded = pf > 1e-3 * vmax
+    vmax = float(vmax_kPa) if vmax_kPa else max(float(pf.max(initial=0.0)), 1e-9)
+    loaded = pf > 1e-3 * max(float(pf.max(initial=0.0)), 1e-9)
     order = np.lexsort((depth, loaded))  # unloaded, then loaded; palmar (+z) last = on top
     xy = xh[order][:, :, :2]  # seen from the palmar side: radial (+x) on the right
     pf, loaded = pf[order], loaded[order]
@@ -239,3 +269,4 @@ def pressure_map_png(fd: dict, hand_R: np.ndarray, path: Path, comm: MPI.Comm, *
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+    return vmax

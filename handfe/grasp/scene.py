@@ -448,7 +448,8 @@ def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf
         if wf.outputs.png:
             from handfe.grasp.outputs import pressure_map_png
             pressure_map_png(fd, H.R, out / "pressure.png", comm,
-                             title=f"{grasp.name} grasp ({mode}), contact pressure")
+                             title=f"{grasp.name} grasp ({mode}), contact pressure",
+                             facets_npz=out / "pressure_facets.npz")
         if wf.outputs.fields:
             scene.write_fields(out / "fields.xdmf")
     return regs, tips
