@@ -34,7 +34,7 @@ def _check_common(res, out, digits):
     assert 0.0 <= s["max_penetration_mm"] < 1.0
     if COMM.rank == 0:
         for f in ("regions.csv", "fingertips.csv", "summary.json", "pressure.png",
-                  "fields.xdmf"):
+                  "pressure_facets.npz", "fields.xdmf"):
             assert (out / f).is_file(), f
         on = json.loads((out / "summary.json").read_text())
         assert on["grip_force_N"] == pytest.approx(s["grip_force_N"])
