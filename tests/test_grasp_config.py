@@ -404,11 +404,6 @@ class _FakeUzawa:
 
         GraspFE._set_contact_data(self, data)
 
-    def _apply_history(self):
-        from handfe.grasp.scene import GraspFE
-
-        GraspFE._apply_history(self)
-
 
 def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
     from handfe.grasp.scene import GraspFE

@@ -236,8 +236,9 @@ def draw_pressure_map(data: dict[str, np.ndarray], hand_R: np.ndarray, path: Pat
     xh = xf @ hand_R  # world -> hand frame coordinates (rows)
     depth = xh[:, :, 2].mean(axis=1)
     pf = p.mean(axis=1)
-    vmax = float(vmax_kPa) if vmax_kPa else max(float(pf.max(initial=0.0)), 1e-9)
-    loaded = pf > 1e-3 * max(float(pf.max(initial=0.0)), 1e-9)
+    p_max = max(float(pf.max(initial=0.0)), 1e-9)
+    vmax = float(vmax_kPa) if vmax_kPa else p_max
+    loaded = pf > 1e-3 * p_max
     order = np.lexsort((depth, loaded))  # unloaded, then loaded; palmar (+z) last = on top
     xy = xh[order][:, :, :2]  # seen from the palmar side: radial (+x) on the right
     pf, loaded = pf[order], loaded[order]

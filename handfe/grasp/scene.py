@@ -683,7 +683,7 @@ class GraspFE:
         cuts = 0
         bc_conv = self.bc.ubc.x.array.copy()  # bone displacement of the last converged state
         while done_frac < 1.0 - 1e-12:
-            self._apply_history()
+            self.contact.apply_history()
             frac = min(1.0, done_frac + blend)
             self.bc.set(target, frac, prev)
             t_new = t_prev + frac * (t_target - t_prev)
@@ -772,10 +772,6 @@ class GraspFE:
         self.motions = target
         self.skel = skel
 
-    def _apply_history(self) -> None:
-        """The friction return mapping of the last accepted step, if not yet applied."""
-        self.contact.apply_history()
-
     def _contact_data(self) -> dict[str, Any]:
         """The contact data a solve balances (multipliers, stick anchors, penalty) and whether
         the last step's return mapping is still due."""
@@ -826,7 +822,7 @@ class GraspFE:
                 return
             k_new = min(k * min(4.0, 2.0 * pen / s.step_penetration_mm), k_max)
             balanced = self._contact_data()
-            self._apply_history()
+            self.contact.apply_history()
             c.set_penalty(k_new)
 
             def undo(balanced: dict[str, Any] = balanced) -> None:
@@ -893,7 +889,7 @@ class GraspFE:
             if stop is not None and stop():
                 return
             balanced = self._contact_data()  # what the state balances: restored on failure
-            self._apply_history()
+            self.contact.apply_history()
             lam = c.lambda_n.x.array.copy()
             lam_t = None if c.lambda_t is None else c.lambda_t.x.array.copy()
             k = float(c.k_n.value)
