@@ -320,12 +320,23 @@ class _FakeClosing:
 
         return GraspFE._overshoots(self, active, before)
 
+    def _loose(self):  # Newton tolerances: nothing to loosen in a stand-in
+        import contextlib
+
+        return contextlib.nullcontext()
+
+    def _tighten(self):
+        pass
+
     def _close_digits(self):
         from handfe.grasp.scene import GraspFE
 
         return GraspFE._close_digits(self)
 
     def _stiffen(self):
+        pass
+
+    def _scale_loose(self, forces):
         pass
 
     def augment(self, tol_mm=None, *, creep=True, stop=None):
@@ -530,6 +541,14 @@ class _FakeMuscles:
 
         return GraspFE._coupling_matrix(self)
 
+    def _loose(self):  # Newton tolerances: nothing to loosen in a stand-in
+        import contextlib
+
+        return contextlib.nullcontext()
+
+    def _tighten(self):
+        pass
+
     def _close_digits(self):
         self.theta = np.array([2.0, 2.0])  # pressing lightly
 
@@ -727,6 +746,14 @@ class _FakePinch(_FakeMuscles):
 
     def _restore(self, snap):
         self.theta, self.contact.translation.value = snap[0].copy(), snap[1].copy()
+
+    def _loose(self):  # Newton tolerances: nothing to loosen in a stand-in
+        import contextlib
+
+        return contextlib.nullcontext()
+
+    def _tighten(self):
+        pass
 
     def _close_digits(self):
         self.theta = np.array([1.0, 1.0])  # both pads pressing lightly, balanced

@@ -198,6 +198,7 @@ class TwoFormNewton:
         # backtracking by default; "basic" (full Newton steps) as the fallback where the
         # backtracking stalls at a kink of the contact law (semi-smooth residual)
         self._snes = {ls: self._make_snes(ls, rtol, atol, max_it) for ls in ("bt", "basic")}
+        self.atol = atol  # N: absolute tolerance of the residual norm (set_atol changes it)
         self.line_search = "bt"
         self.snes = self._snes["bt"]
         self.iterations = 0
@@ -253,6 +254,13 @@ class TwoFormNewton:
         A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
         fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
+
+    def set_atol(self, atol: float) -> None:
+        """Absolute tolerance (N, residual norm) of the later solves, both line searches."""
+        for snes in self._snes.values():
+            rtol, _, stol, max_it = snes.getTolerances()
+            snes.setTolerances(rtol=rtol, atol=atol, stol=stol, max_it=max_it)
+        self.atol = float(atol)
 
     def solve(self, line_search: str | None = None) -> tuple[bool, int, str]:
         """Newton from the current state with ``line_search`` ("bt" or "basic"; default

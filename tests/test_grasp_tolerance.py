@@ -1,0 +1,90 @@
+"""Loose intermediate solves, tight reported state (``solver.closing_atol_N``, issue 6).
+
+The closing steps of a grasp stop Newton at ``closing_atol_N`` (Newton on the contact kinks
+stalls at 1e-4..1e-2 N, docs/grasp.md); ``GraspFE._tighten`` then solves the last state to the
+tight tolerance with the same data. Checked on the two-bone Ogden block of the torque-tangent
+test: the loose solve stops early within its tolerance, the tightened state is the tight
+solve's, and the tolerance is restored after the loose block even when it raises.
+"""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+from test_grasp_torque_jacobian import _block, _chain  # pytest puts tests/ on sys.path
+
+from handfe.grasp.config import SolverSpec
+from handfe.grasp.fe import TwoFormNewton
+from handfe.grasp.scene import GraspFE
+
+
+class _Scene:
+    """The pieces of GraspFE that _loose/_tighten use."""
+
+    def __init__(self, problem, solver, closing_atol_N):
+        self.problem, self.solver = problem, solver
+        self.wf = SimpleNamespace(solver=SolverSpec(closing_atol_N=closing_atol_N))
+        self.steps, self.log = [], []
+
+    def say(self, msg):
+        self.log.append(msg)
+
+    _loose = GraspFE._loose
+    _tighten = GraspFE._tighten
+    _residual_norm = GraspFE._residual_norm
+    _set_state = GraspFE._set_state
+
+
+@pytest.mark.mpi
+def test_loose_closing_solves_then_one_tight_solve():
+    comm = MPI.COMM_WORLD
+    msh, problem, bc, ds = _block(comm)
+    k = fem.Constant(msh, 1e-3)  # MPa/mm: the soft foundation of the torque-tangent test
+    problem.add_residual(k * ufl.inner(ufl.split(problem.w)[0], problem.vu) * ds(7))
+    solver = TwoFormNewton(problem, max_it=40)
+    scene = _Scene(problem, solver, closing_atol_N=1e-2)
+    old = bc.ubc.x.array.copy()
+    bc.set(_chain(np.radians([3.0, -2.0]))[0])
+    bc.predict(old)
+    w_start = problem.w.x.array.copy()
+
+    ok, its_tight, reason = solver.solve()
+    assert ok, reason
+    w_tight = problem.w.x.array.copy()
+    assert scene._residual_norm() <= 1e-9
+
+    scene._set_state(w_start)
+    with scene._loose():
+        assert solver.atol == 1e-2 and solver.stall_atol >= 1e-2
+        ok, its_loose, reason = solver.solve()
+        assert ok, reason
+    assert solver.atol == 1e-9  # restored
+    r_loose = scene._residual_norm()
+    assert r_loose <= 1e-2
+    assert its_loose < its_tight  # the quadratic tail is not paid for an intermediate state
+
+    scene._tighten()
+    assert scene.steps[-1]["step"] == "tight solve" and scene.steps[-1]["converged"]
+    assert scene._residual_norm() <= 1e-9
+    scale = float(np.abs(w_tight).max())
+    diff = comm.allreduce(float(np.abs(problem.w.x.array - w_tight).max()), op=MPI.MAX)
+    assert diff <= 1e-6 * scale
+
+
+def test_loose_block_restores_the_tolerance_on_error():
+    solver = SimpleNamespace(atol=1e-9, stall_atol=1e-4)
+    solver.set_atol = lambda a: setattr(solver, "atol", a)
+    scene = _Scene(None, solver, closing_atol_N=1e-2)
+    with pytest.raises(RuntimeError), scene._loose():
+        assert solver.atol == 1e-2
+        raise RuntimeError("a closing step failed")
+    assert (solver.atol, solver.stall_atol) == (1e-9, 1e-4)
+    # 0 = every solve tight: nothing changes, and there is nothing to tighten
+    off = _Scene(None, solver, closing_atol_N=0.0)
+    with off._loose():
+        assert solver.atol == 1e-9
+    off._tighten()
+    assert off.steps == []
