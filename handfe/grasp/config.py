@@ -117,9 +117,9 @@ class SolverSpec:
     augmented_friction: bool = False
     stick_ratio: float = field(default=1.0, metadata=bounds(0.01, 1.0))
     stick_tol_mm: float = field(default=0.02, metadata=bounds(1e-5, 1.0))
-    # Newton tolerance (N, residual norm) of the intermediate solves: the closing steps, their
-    # Uzawa updates and the final phase's updates but its last; a tight solve (1e-9 N, a stall
-    # <= 1e-4 N accepted) then makes the reported state. 0 = every solve tight. Newton on the
+    # Newton tolerance (N, residual norm) of the closing steps and their Uzawa updates (2e-3 x
+    # the digit forces, at most this); then a tight solve (1e-9 N, a stall <= 1e-4 N accepted)
+    # and the final Uzawa phase, tight too, make the reported state. 0 = every solve tight. Newton on the
     # contact kinks stalls at 1e-4..1e-2 N, i.e. 2e-5..2e-3 of a 5 N digit force, and a
     # stalled closing step was cut down to 1/128 (docs/grasp.md, tenth session)
     closing_atol_N: float = field(default=0.0, metadata=bounds(0.0, 0.1))
