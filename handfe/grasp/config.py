@@ -119,9 +119,9 @@ class SolverSpec:
     stick_tol_mm: float = field(default=0.02, metadata=bounds(1e-5, 1.0))
     # Newton tolerance (N, residual norm) of the closing steps and their Uzawa updates (2e-3 x
     # the digit forces, at most this); then a tight solve (1e-9 N, a stall <= 1e-4 N accepted)
-    # and the final Uzawa phase, tight too, make the reported state. 0 = every solve tight. Newton on the
-    # contact kinks stalls at 1e-4..1e-2 N, i.e. 2e-5..2e-3 of a 5 N digit force, and a
-    # stalled closing step was cut down to 1/128 (docs/grasp.md, tenth session)
+    # and the final Uzawa phase, tight too, make the reported state. 0 = every solve tight.
+    # Newton on the contact kinks stalls at 1e-4..1e-2 N, i.e. 2e-5..2e-3 of a 5 N digit
+    # force, and a stalled closing step was cut down to 1/128 (docs/grasp.md, tenth session)
     closing_atol_N: float = field(default=0.0, metadata=bounds(0.0, 0.1))
     # Newton line search tried first ("bt" backtracking or "basic" full steps); the other is
     # the fallback before a step is cut
