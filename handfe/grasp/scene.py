@@ -370,6 +370,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         # -- loading
         stage = f"loading ({mode})"
         t0 = time.perf_counter()
+        summary["torque_balance"] = TORQUE_BALANCE[mode]
         if mode == "muscles":
             scene.solve_muscles()
         else:
@@ -418,6 +419,16 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                               load_step=exc.load_step, load_factor=exc.load_factor,
                               residual=exc.residual) from None
         raise
+
+
+# what the per-joint torque residuals of summary.json mean in each loading mode
+TORQUE_BALANCE = {
+    "muscles": "solved: at each released joint the muscle (EMG), ligament and tissue/contact "
+               "torques balance (joints.*.residual_Nmm, relative_residual)",
+    "angles": "not imposed: the joint angles are prescribed; joints.*.residual_Nmm is the "
+              "muscle torque (EMG) minus what the ligaments and the tissue/contact reactions "
+              "take at that posture, i.e. how far the measured forces are from balancing it",
+}
 
 
 def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf: Workflow,
