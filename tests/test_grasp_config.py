@@ -342,6 +342,9 @@ class _FakeClosing:
     def augment(self, tol_mm=None, *, creep=True, stop=None):
         pass
 
+    def _final_phase(self):
+        pass
+
     def torques(self):
         return {}
 

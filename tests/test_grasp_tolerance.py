@@ -88,3 +88,79 @@ def test_loose_block_restores_the_tolerance_on_error():
         assert solver.atol == 1e-9
     off._tighten()
     assert off.steps == []
+
+
+class _FinalPhase:
+    """Stand-in for GraspFE._final_phase: the state is [penetration mm]; the tight Uzawa phase
+    stops at 0.058 mm (a failed re-solve), the loose one reaches 0.005 mm, and the tight solve
+    after it converges or not (``tight_ok``)."""
+
+    def __init__(self, tight_ok: bool, closing_atol_N: float = 1e-2):
+        self.tight_ok = tight_ok
+        self.wf = SimpleNamespace(solver=SolverSpec(closing_atol_N=closing_atol_N))
+        self.solver = SimpleNamespace(atol=1e-9)
+        self.problem = SimpleNamespace(w=SimpleNamespace(x=SimpleNamespace(
+            array=np.array([0.2]))))
+        self.contact = SimpleNamespace(penetration_tol_mm=0.01, uzawa=SimpleNamespace(
+            penetration=lambda: float(self.problem.w.x.array[0])))
+        self.data = {"lambda_n": "tight"}
+        self.loose = False
+        self.steps, self.log = [], []
+
+    def say(self, msg):
+        self.log.append(msg)
+
+    def augment(self):
+        self.problem.w.x.array[:] = 0.005 if self.loose else 0.058
+        self.data = {"lambda_n": "loose" if self.loose else "tight"}
+
+    def _loose(self):
+        import contextlib
+
+        @contextlib.contextmanager
+        def block():
+            self.loose = True
+            try:
+                yield
+            finally:
+                self.loose = False
+        return block()
+
+    def _scale_loose(self, forces):
+        assert self.loose
+
+    def digit_forces(self):
+        return {}
+
+    def _tighten(self):
+        return self.tight_ok
+
+    def _contact_data(self):
+        return dict(self.data)
+
+    def _set_contact_data(self, data):
+        self.data = dict(data)
+
+    def _set_state(self, w):
+        self.problem.w.x.array[:] = w
+
+    def _residual_norm(self):
+        return 0.0
+
+    _final_phase = GraspFE._final_phase
+
+
+@pytest.mark.parametrize("tight_ok", [True, False])
+def test_final_phase_goes_on_loosely_and_keeps_only_a_tight_better_state(tight_ok):
+    scene = _FinalPhase(tight_ok)
+    scene._final_phase()
+    pen = scene.contact.uzawa.penetration()
+    if tight_ok:  # loose updates from 0.058 mm, then a converged tight solve: kept
+        assert pen == 0.005 and scene.data == {"lambda_n": "loose"}
+    else:  # the tight solve failed: the tight state and the data it was solved with come back
+        assert pen == 0.058 and scene.data == {"lambda_n": "tight"}
+        assert scene.steps[-1]["step"] == "restored tight state"
+    # without loose solves (closing_atol_N = 0) the tight phase's result is final
+    off = _FinalPhase(tight_ok, closing_atol_N=0.0)
+    off._final_phase()
+    assert off.contact.uzawa.penetration() == 0.058 and off.log == []

@@ -1083,12 +1083,41 @@ class GraspFE:
         with self._loose():
             self._close_digits()
         self._tighten()
-        # the final phase's re-solves are tight: a failed one restores a tight state and its
-        # data (loose updates then one tight solve ended the reduced spherical grasp at 9.4e-3
-        # N when that solve failed: equilibrium error 1.1e-3, docs/grasp.md)
-        self.augment()
+        self._final_phase()
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
+
+    def _final_phase(self) -> None:
+        """Uzawa updates to the penetration target with tight re-solves (a failed one restores
+        a tight state and its data: loose updates then one tight solve had ended the reduced
+        spherical grasp unbalanced when that solve failed, docs/grasp.md). If the phase ends
+        on a failed re-solve above the target, it goes on from there with loose updates and
+        one tight solve; that result is kept only if the tight solve converges and the
+        penetration fell, otherwise the tight state and its contact data come back."""
+        self.augment()
+        c = self.contact
+        if c.uzawa is None or self.wf.solver.closing_atol_N <= self.solver.atol:
+            return
+        tol, pen = c.penetration_tol_mm, c.uzawa.penetration()
+        if pen <= tol:
+            return
+        w0, data0 = self.problem.w.x.array.copy(), self._contact_data()
+        self.say(f"  final phase stopped at {pen:.4f} mm (target {tol:g} mm): loose updates "
+                 "from there, then one tight solve")
+        with self._loose():
+            self._scale_loose(self.digit_forces())
+            self.augment()
+        ok = self._tighten()
+        pen1 = c.uzawa.penetration()
+        if ok and pen1 < pen:
+            self.say(f"  kept: penetration {pen1:.4f} mm")
+            return
+        self._set_state(w0)
+        self._set_contact_data(data0)
+        self.steps.append({"step": "restored tight state", "fraction": 1.0, "newton": 0,
+                           "residual": self._residual_norm(), "converged": True})
+        why = f"penetration {pen1:.4f} mm" if ok else "the tight solve failed"
+        self.say(f"  not kept ({why}): back to the tight state at {pen:.4f} mm")
 
     @contextlib.contextmanager
     def _loose(self):
@@ -1119,13 +1148,13 @@ class GraspFE:
         self.solver.set_atol(a)
         self.solver.stall_atol = max(tt[1], a)
 
-    def _tighten(self) -> None:
+    def _tighten(self) -> bool:
         """After loose solves: Newton to the tight tolerance with the contact data the state
         was solved with (a pending friction return mapping stays pending), so the reported
         state balances them. On failure the loose state is kept and ``final_residual_N`` in the
-        summary says how far from balance it is."""
+        summary says how far from balance it is. True if it converged."""
         if self.wf.solver.closing_atol_N <= self.solver.atol:
-            return
+            return True
         w0 = self.problem.w.x.array.copy()
         r0 = self._residual_norm()
         ok, its, reason = self.solver.solve()
@@ -1142,6 +1171,7 @@ class GraspFE:
         self.say(f"  tight solve from {r0:.1e} N: " + (
             f"converged ({its} iterations)" if ok else
             f"failed ({reason}, {its} iterations): the state keeps its {r0:.1e} N residual"))
+        return bool(ok)
 
     def _close_digits(self) -> None:
         """Each digit whose contact force is below ``digit_force_N`` closes its released joints
