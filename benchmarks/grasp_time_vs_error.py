@@ -4,8 +4,9 @@ For each grasp and mesh level, run the workflow (its own loading mode, ``angles`
 shipped ones) and compare the region contact areas (thumb..little, palm) and the fingertip mean
 pressures (pads carrying >= 0.5 N in the reference) with the finest level run; the CSV names
 the worst region and pad. Wall time: median of --repeats runs (the first run of a process
-also compiles the forms; use --repeats >= 2 or a warm cache). Partial-hand meshing ("skip what the scene does not
-need") is part of every run; its saving is in the summary's ``skipped``.
+also compiles the forms; use --repeats >= 2 or a warm cache). Partial-hand meshing ("skip
+what the scene does not need") is part of every run; its saving is in the summary's
+``skipped``.
 
     .venv/bin/python benchmarks/grasp_time_vs_error.py --grasps precision --levels coarse,reduced
     mpirun -n 2 .venv/bin/python benchmarks/grasp_time_vs_error.py --out results/bench_grasp
