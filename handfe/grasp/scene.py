@@ -1091,7 +1091,7 @@ class GraspFE:
         """Uzawa updates to the penetration target with tight re-solves (a failed one restores
         a tight state and its data: loose updates then one tight solve had ended the reduced
         spherical grasp unbalanced when that solve failed, docs/grasp.md). If the phase ends
-        on a failed re-solve above the target, it goes on from there with loose updates and
+        above the target (a failed re-solve, or max_augment), it goes on with loose updates and
         one tight solve; that result is kept only if the tight solve converges and the
         penetration fell, otherwise the tight state and its contact data come back."""
         self.augment()
