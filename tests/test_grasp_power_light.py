@@ -10,14 +10,14 @@ scripts/mpi-pytest.py -q -m mpi tests/test_grasp_power_light.py``).
 """
 
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
 from mpi4py import MPI
+from test_grasp_run import light_workflow  # pytest puts tests/ on sys.path
 
 from handfe.grasp import run_workflow
-from handfe.grasp.config import GRASPS_DIR, load_workflow
+from handfe.grasp.config import GRASPS_DIR
 
 COMM = MPI.COMM_WORLD
 DIGITS = ("thumb", "index")
@@ -48,10 +48,7 @@ def test_power_grasp_light_end_to_end_two_ranks(name, tmp_path_factory):
     if COMM.rank == 0:
         _two_digit_grasp(name, folder)
     folder = COMM.bcast(folder, root=0)
-    wf = load_workflow(name)
-    wf = replace(wf, grasp=str(folder / f"{name}_ci.toml"), mesh="coarse", loading="angles",
-                 solver=replace(wf.solver, digit_force_N=1.0),
-                 outputs=replace(wf.outputs, fields=False))
+    wf = light_workflow(name, grasp=str(folder / f"{name}_ci.toml"))
     res = run_workflow(wf, out_dir=folder / "run", progress=False)
     COMM.barrier()
     s = res.summary

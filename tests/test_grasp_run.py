@@ -77,13 +77,15 @@ def test_precision_angles_two_ranks(tmp_path_factory):
 
 
 
-def _light_pinch_workflow():
+def light_workflow(name: str = "precision", grasp: str | None = None):
+    """The shipped workflow ``name`` at CI size: coarse mesh, angles loading, each digit
+    closing to 1 N, no fields; ``grasp`` replaces its grasp file."""
     from dataclasses import replace
 
     from handfe.grasp.config import load_workflow
 
-    wf = load_workflow("precision")
-    return replace(wf, mesh="coarse", loading="angles",
+    wf = load_workflow(name)
+    return replace(wf, grasp=grasp or wf.grasp, mesh="coarse", loading="angles",
                    solver=replace(wf.solver, digit_force_N=1.0),
                    outputs=replace(wf.outputs, fields=False))
 
@@ -92,7 +94,7 @@ def _light_pinch_workflow():
 def light_pinch(tmp_path_factory):
     """The CI-sized pinch on 2 ranks (each digit closes to 1 N instead of 5 N), run once for
     the tests below: (workflow, result, output folder)."""
-    wf = _light_pinch_workflow()
+    wf = light_workflow()
     out = tmp_path_factory.mktemp("precision_light") if COMM.rank == 0 else None
     out = COMM.bcast(out, root=0)
     return wf, run_workflow(wf, out_dir=out, progress=False), out

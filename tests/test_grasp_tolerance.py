@@ -7,6 +7,7 @@ test: the loose solve stops early within its tolerance, the tightened state is t
 solve's, and the tolerance is restored after the loose block even when it raises.
 """
 
+import contextlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -114,17 +115,13 @@ class _FinalPhase:
         self.problem.w.x.array[:] = 0.005 if self.loose else 0.058
         self.data = {"lambda_n": "loose" if self.loose else "tight"}
 
+    @contextlib.contextmanager
     def _loose(self):
-        import contextlib
-
-        @contextlib.contextmanager
-        def block():
-            self.loose = True
-            try:
-                yield
-            finally:
-                self.loose = False
-        return block()
+        self.loose = True
+        try:
+            yield
+        finally:
+            self.loose = False
 
     def _scale_loose(self, forces):
         assert self.loose
