@@ -834,3 +834,35 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
     assert calls and set(calls) == {(0.1, False)}
     assert max(ends) <= 0.1  # every balanced load ended within step_penetration_mm
     assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+
+
+def test_friction_demand_matches_a_dense_search_and_a_closed_form():
+    from handfe.grasp.mechanics import friction_demand
+
+    # a planar two-joint chain (axes e_z): the in-plane force is fixed, F_z is free
+    A = np.array([[0.0, 10.0, 0.0], [-5.0, 20.0, 0.0]])  # rows a_j x (p - c_j), mm
+    F_plane = np.array([3.0, 4.0, 0.0])
+    b = A @ F_plane
+    n = np.array([0.0, 1.0, 0.0])
+    r, F = friction_demand(A, b, n)
+    assert r == pytest.approx(3.0 / 4.0, rel=1e-9)  # F_z = 0 is the least tangential force
+    assert np.allclose(A @ F, b)
+    # a normal with an out-of-plane part: the free F_z helps; compare with a dense search
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        A = rng.normal(size=(2, 3))
+        b = rng.normal(size=2)
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        r, F = friction_demand(A, b, n, max_force_N=50.0)
+        F0 = np.linalg.lstsq(A, b, rcond=None)[0]
+        d = np.linalg.svd(A)[2][-1]
+        s = np.linspace(-60.0, 60.0, 240001)
+        Fs = F0[None, :] + s[:, None] * d[None, :]
+        fn = Fs @ n
+        ok = (fn > 0) & (np.linalg.norm(Fs, axis=1) <= 50.0)
+        brute = (np.linalg.norm(Fs - fn[:, None] * n[None, :], axis=1)[ok] / fn[ok]).min() \
+            if ok.any() else np.inf
+        assert r == pytest.approx(brute, rel=1e-4, abs=1e-9)
+        if np.isfinite(r):
+            assert np.allclose(A @ F, b) and np.linalg.norm(F) <= 50.0 + 1e-9

@@ -174,6 +174,50 @@ def muscle_torques(forces_N: dict[str, float], joints: list[Joint]) -> np.ndarra
     return out
 
 
+def friction_demand(A: np.ndarray, b: np.ndarray, n: np.ndarray,
+                    max_force_N: float = np.inf) -> tuple[float, np.ndarray]:
+    """Least friction a point contact needs to balance two joint torques (rigid-link statics).
+
+    ``A F = b`` (A: 2 x 3, the rows of J^T of two released DOFs; b: the torque, N mm, the
+    contact force ``F`` (N, on the digit) must supply) leaves F free along the null direction
+    d of A. Returns the smallest ``|F_t| / F_n`` (F_n = F.n > 0, ``n`` the object's outward
+    unit normal) over F = F0 + s d with |F| <= ``max_force_N``, and that F; (inf, F0) if no
+    such F pushes. The ratio r(s) of a line has one stationary point, s* = (f a - b e) /
+    (c e - b f) (a = |P F0|^2, b = P F0 . P d, c = |P d|^2, e = F0.n, f = d.n, P = I - n n^T),
+    so the minimum is there or at an end of the admissible interval.
+    """
+    n = np.asarray(n, float) / np.linalg.norm(n)
+    F0 = np.linalg.lstsq(A, b, rcond=None)[0]
+    d = np.linalg.svd(A)[2][-1]
+    P = np.eye(3) - np.outer(n, n)
+    pF, pd = P @ F0, P @ d
+    a_, b_, c_, e_, f_ = pF @ pF, pF @ pd, pd @ pd, F0 @ n, d @ n
+    # |F0 + s d| <= max_force_N: s in [lo, hi]
+    if np.isfinite(max_force_N):
+        q = (F0 @ d) ** 2 - (F0 @ F0 - max_force_N**2)
+        if q < 0.0:
+            return float("inf"), F0
+        lo, hi = -F0 @ d - np.sqrt(q), -F0 @ d + np.sqrt(q)
+    else:
+        lo, hi = -1e12, 1e12
+    cands = [lo, hi]
+    den = c_ * e_ - b_ * f_
+    if abs(den) > 1e-300:
+        cands.append((f_ * a_ - b_ * e_) / den)
+    best, F_best = float("inf"), F0
+    for s in cands:
+        if not lo <= s <= hi:
+            continue
+        F = F0 + s * d
+        fn = F @ n
+        if fn <= 0.0:
+            continue
+        r = float(np.linalg.norm(P @ F) / fn)
+        if r < best:
+            best, F_best = r, F
+    return best, F_best
+
+
 def opened_pose(pose: Pose, digits: tuple[str, ...], opening_deg: float) -> Pose:
     """``pose`` with ``opening_deg`` of flexion removed at the released joints of ``digits``
     (clamped to the joint limits)."""
