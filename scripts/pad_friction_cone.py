@@ -12,13 +12,12 @@ friction the balance needs; above mu = 0.74 no held-ball balance exists at that 
 FE balance need not find the least-friction F: its share along d is set by the tissue and the
 path, so this is a necessary condition, not a sufficient one.
 
-Contact point: with ``--run R`` (a finished pinch run folder) the pressure-weighted centroid of
-the digit's contact facets (``R/pressure_facets.npz``), projected on the ball, at that run's
-final angles (``R/summary.json``), carried rigidly with the distal phalanx as the angles vary;
-without it the ball point nearest the distal phalanx's pad (a geometric guess) at the glove
-angles. Scanned: the two released DOFs over +-``--span`` deg (1 deg grid), keeping only postures
-whose contact point stays within +-``--depth`` mm of the ball surface (compression), and the
-point moved over the pad by up to +-``--roll`` mm. Ligament torques at each posture; the
+Contact point: the pressure-weighted centroid of the digit's distal-pad contact facets in the
+finished run folder ``R`` (``R/pressure_facets.npz``; ball centre and final angles from
+``R/summary.json``), carried rigidly with the distal phalanx as the angles vary. Scanned: the
+two released DOFs over +-``--span`` deg (1 deg grid), keeping only postures whose contact point
+stays within +-``--depth`` mm of the ball surface (compression), and the point moved over the
+pad by up to +-``--roll`` mm. Ligament torques at each posture; the
 tissue's own bending torque (a few % of the EMG's) is left out. Output: CSV on stdout.
 
     .venv/bin/python scripts/pad_friction_cone.py --run R [--span 10] [--roll 3] [--depth 1.5]
@@ -66,7 +65,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--subject", default="subjects/S01")
     ap.add_argument("--grasp", default="precision")
-    ap.add_argument("--run", type=Path, help="finished run folder of the grasp (angles mode)")
+    ap.add_argument("--run", type=Path, required=True,
+                    help="finished run folder of the grasp (angles mode)")
     ap.add_argument("--span", type=float, default=10.0,
                     help="+- deg about the base angles (1 deg grid)")
     ap.add_argument("--roll", type=float, default=3.0,
@@ -84,15 +84,12 @@ def main() -> None:
     R_ball = float(cfg["object"]["radius_mm"])
     subj = load_subject(sd)
     pose = grasp_pose(sd, args.grasp)
-    if args.run:
-        summ = json.loads((args.run / "summary.json").read_text())
-        centre = np.asarray(summ["object"]["centre_world_mm"])
-        vals = dict(pose.values)
-        vals.update({k: v["equilibrium_deg"] for k, v in summ["joints"].items()})
-        pose = Pose(vals, source="run")
-        points = contact_centroids(args.run)
-    else:
-        centre, points = np.asarray(cfg["object"]["centre_mm"], float), {}
+    summ = json.loads((args.run / "summary.json").read_text())
+    centre = np.asarray(summ["object"]["centre_world_mm"])
+    vals = dict(pose.values)
+    vals.update({k: v["equilibrium_deg"] for k, v in summ["joints"].items()})
+    pose = Pose(vals, source="run")
+    points = contact_centroids(args.run)
     forces = {m: f for m, (f, _) in muscle_forces(sd, args.grasp).items()}
     print("digit,load_fraction,ratio_base_posture,least_ratio_over_scan,best_angles_deg,"
           "postures_within_mu,postures_touching")
@@ -104,12 +101,10 @@ def main() -> None:
         B = (np.array([[1.0, 0.0], [0.0, 1.0], [0.0, args.coupling]]) if len(joints) == 3
              else np.eye(2))  # finger: (MCP, PIP) with DIP = c PIP
         f0 = kin.skel0.bones[DIGIT_BONES[d][-1]].frame
-        if d in points:
-            p_local = f0.R.T @ (points[d] - f0.o)
-        else:
-            pad = kin.skel0.bones[DIGIT_BONES[d][-1]].point((0.0, 0.3, 1.0))
-            u = (pad - centre) / np.linalg.norm(pad - centre)
-            p_local = f0.R.T @ (centre + R_ball * u - f0.o)
+        if d not in points:
+            print(f"{d},no distal-pad contact in {args.run}")
+            continue
+        p_local = f0.R.T @ (points[d] - f0.o)
         grid = np.linspace(-args.span, args.span, 2 * int(args.span) + 1)
         postures = []
         for dq in itertools.product(grid, grid):
