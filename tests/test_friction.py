@@ -279,7 +279,7 @@ def test_release_stick_after_a_frictionless_solve_starts_stick_afresh():
     """``set_friction(0)`` + a solve + ``release_stick``: the sheared, stuck block lets go of
     its shear (the face follows the platen, no tangential force), and friction is back on for
     the next load: a further platen travel shears the block from the released state (G A / H
-    times the new travel, within 25 %) - the muscles mode's ``muscle_release_stick``."""
+    times the new travel, within 25 %)."""
     mu = 0.74
     sc = _pressed(mu, augmented_friction=True)
     d = 0.08

@@ -92,11 +92,6 @@ class SolverSpec:
     # penalty's ~1 mm at 20 N (off by default; all updates after a balanced load made a jump
     # the re-balance needed FE step cuts to 1/16 for - run r3, docs/grasp.md)
     muscle_uzawa: bool = False
-    # muscles mode: before the torque homotopy the tangential tractions the kinematic closing
-    # built up are released (stick anchors onto the current pad positions, tangential
-    # multipliers 0) and the state re-solved, so the muscle torques start from pads that
-    # carry only normal pressure (the closing is a numerical device, its shear is not data)
-    muscle_release_stick: bool = False
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

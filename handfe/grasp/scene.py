@@ -1290,8 +1290,6 @@ class GraspFE:
         with self._loose():
             self._close_digits()
         self._tighten()  # the holding torques come from the tissue residual
-        if s.muscle_release_stick and self.contact.u_ref is not None:
-            self._release_pad_shear()
         if s.dip_pip_coupling > 0.0:
             idx = {j.name: i for i, j in enumerate(self.joints)}
             self.coupled = [(idx[f"{j.digit}_pip"], i, s.dip_pip_coupling)
@@ -1353,25 +1351,6 @@ class GraspFE:
             self.tau_muscle = tau_m
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
-
-    def _release_pad_shear(self) -> None:
-        """Frictionless re-solve at the current angles, then the stick anchors onto that state
-        (zero tangential traction, friction back on): the closing's pad shear is gone. On a
-        failed re-solve the state and contact data stay as they were."""
-        c = self.contact
-        balanced, mu = self._contact_data(), c.mu
-        c.apply_history()
-        c.set_friction(0.0)
-        try:
-            ok = self._resolve("frictionless re-solve (closing's pad shear released)",
-                               lambda: self._set_contact_data(balanced))
-        finally:
-            c.set_friction(mu)
-        if ok:
-            c.release_stick()
-            self._tighten()
-        self.steps.append({"step": "pad shear released", "fraction": 1.0, "newton": 0,
-                           "residual": self._residual_norm(), "converged": bool(ok)})
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
