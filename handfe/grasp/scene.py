@@ -1107,8 +1107,8 @@ class GraspFE:
         with self._loose():
             self._scale_loose(self.digit_forces())
             # to the penetration target only: the stick creep that kept the tight phase going
-            # (reduced cylinder: 0.02 mm, flat over updates 26-31 of 100 s each) is not
-            # what this continuation is for
+            # is not what this continuation is for (reduced cylinder: it stayed at 0.02 mm
+            # over the loose updates, ~100 s each, after the penetration was at 0.004 mm)
             self.augment(creep=False)
         ok = self._tighten()
         pen1 = c.uzawa.penetration()
