@@ -152,7 +152,9 @@ def start_gaps(obstacle, shift: np.ndarray, surface) -> dict[str, float]:
     return out
 
 
-def _pose_for(wf: Workflow, grasp, subject_dir: Path):
+def measured_pose(wf: Workflow, grasp, subject_dir: Path):
+    """The grasp's measured posture and where it came from: the subject's glove angles (mean
+    of the hold windows) or the grasp's pose TOML."""
     from handfe.kinematics import Pose, grasp_pose
     from handfe.paths import REPO_ROOT
 
@@ -223,7 +225,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         t0 = time.perf_counter()
         from handfe.grasp.mechanics import opened_pose
 
-        measured, pose_src = _pose_for(wf, grasp, subject_dir)
+        measured, pose_src = measured_pose(wf, grasp, subject_dir)
         pose = opened_pose(measured, grasp.digits, grasp.opening_deg)
         subject = load_subject(subject_dir)
         forces = {m: f for m, (f, _sd) in muscle_forces(
