@@ -146,8 +146,7 @@ class RigidContact:
         if mu > 0:
             Vu = fem.VectorFunctionSpace(mesh, ("CG", problem.disc.degree))
             self.u_ref = fem.Function(Vu, name="stick_anchor")
-            self._mu_c = fem.Constant(mesh, PETSc.ScalarType(mu))
-            kw = {"mu": self._mu_c, "u_ref": self.u_ref,
+            kw = {"mu": fem.Constant(mesh, PETSc.ScalarType(mu)), "u_ref": self.u_ref,
                   "translation_ref": self.translation_ref}
             if augmented and augmented_friction:
                 self.lambda_t = fem.Function(Vu, name="tangential_multiplier")
@@ -295,30 +294,6 @@ class RigidContact:
             shift = friction_anchor_update(s, p, self.mu, self.k_t, margin=2.0)
         self.u_ref.x.array[:] += shift.reshape(-1)
         self.u_ref.x.scatter_forward()
-
-    def set_friction(self, mu: float) -> None:
-        """Change the friction coefficient of a frictional contact (no recompilation); e.g.
-        0 for a frictionless re-solve before :meth:`release_stick`."""
-        if self.u_ref is None:
-            raise InputError("set_friction: the contact was built frictionless (mu = 0)")
-        if mu < 0:
-            raise InputError(f"friction coefficient mu = {mu} must be >= 0")
-        self.mu = float(mu)
-        self._mu_c.value = float(mu)
-
-    def release_stick(self) -> None:
-        """Zero tangential traction at the current state: every stick anchor moves by its
-        node's slip onto the current position and the tangential multipliers are 0. After a
-        frictionless solve (:meth:`set_friction`) the state then balances the data; otherwise
-        the stick springs pull the pads back towards their old anchors in the next solve."""
-        if self.u_ref is None:
-            return
-        self.history_due = False
-        self._slip.interpolate(self._slip_expr)
-        self.u_ref.x.array[:] += self._slip.x.array
-        self.u_ref.x.scatter_forward()
-        if self.lambda_t is not None:
-            self.lambda_t.x.array[:] = 0.0
 
     def apply_history(self) -> None:
         """The return mapping :meth:`on_step` deferred, if it is still due."""
