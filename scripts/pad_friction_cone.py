@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -92,7 +93,7 @@ def main() -> None:
           "postures_within_mu,postures_touching")
     for d in grasp.digits:
         if d not in points:
-            print(f"{d},no distal-pad contact in {args.run}")
+            print(f"{d}: no distal-pad contact in {args.run}, skipped", file=sys.stderr)
             continue
         joints = released_joints((d,))
         kin = Kinematics(subj, pose, joints)
