@@ -77,6 +77,10 @@ def main() -> None:
     ap.add_argument("--max-force", type=float, default=60.0,
                     help="largest pad force, N, the held joints may add along the free direction")
     args = ap.parse_args()
+    for f in ("summary.json", "pressure_facets.npz"):
+        if not (args.run / f).is_file():
+            ap.error(f"--run {args.run}: no {f} (a finished run folder of `handfe run` with "
+                     "png = true has both)")
 
     summ = json.loads((args.run / "summary.json").read_text())
     wf = load_workflow(summ["workflow"])
