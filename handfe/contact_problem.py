@@ -146,7 +146,8 @@ class RigidContact:
         if mu > 0:
             Vu = fem.VectorFunctionSpace(mesh, ("CG", problem.disc.degree))
             self.u_ref = fem.Function(Vu, name="stick_anchor")
-            kw = {"mu": fem.Constant(mesh, PETSc.ScalarType(mu)), "u_ref": self.u_ref,
+            self._mu_c = fem.Constant(mesh, PETSc.ScalarType(mu))
+            kw = {"mu": self._mu_c, "u_ref": self.u_ref,
                   "translation_ref": self.translation_ref}
             if augmented and augmented_friction:
                 self.lambda_t = fem.Function(Vu, name="tangential_multiplier")
@@ -294,6 +295,28 @@ class RigidContact:
             shift = friction_anchor_update(s, p, self.mu, self.k_t, margin=2.0)
         self.u_ref.x.array[:] += shift.reshape(-1)
         self.u_ref.x.scatter_forward()
+
+    def set_friction(self, mu: float) -> None:
+        """Change the friction coefficient of a contact built with mu > 0 (a Constant: no
+        recompilation); 0 makes it frictionless until the next call."""
+        if self.u_ref is None:
+            raise InputError("set_friction: the contact was built frictionless (mu = 0)")
+        if not (math.isfinite(mu) and mu >= 0):
+            raise InputError(f"friction coefficient mu = {mu} must be >= 0")
+        self.mu = float(mu)
+        self._mu_c.value = float(mu)
+
+    def release_stick(self) -> None:
+        """Zero tangential traction at the current state: every stick anchor moves onto its
+        node's current position (by its slip) and the tangential multipliers are 0."""
+        if self.u_ref is None:
+            return
+        self.history_due = False
+        self._slip.interpolate(self._slip_expr)
+        self.u_ref.x.array[:] += self._slip.x.array
+        self.u_ref.x.scatter_forward()
+        if self.lambda_t is not None:
+            self.lambda_t.x.array[:] = 0.0
 
     def apply_history(self) -> None:
         """The return mapping :meth:`on_step` deferred, if it is still due."""

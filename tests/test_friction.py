@@ -22,6 +22,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
+from handfe.errors import InputError
+
 L_MM, H_MM = 4.0, 1.0
 DELTA = 0.1  # mm, platen travel into the plate
 PEN_TOL = 2e-4  # mm: Uzawa loop tolerance, small against DELTA so N does not drift
@@ -271,3 +273,33 @@ def test_friction_ranks_agree():
     ser = run(MPI.COMM_SELF)
     par = ser if MPI.COMM_WORLD.size == 1 else run(MPI.COMM_WORLD)
     np.testing.assert_allclose(par, ser, rtol=1e-6, atol=1e-9)
+
+
+def test_release_stick_after_a_frictionless_solve_starts_stick_afresh():
+    """``set_friction(0)`` + a solve + ``release_stick``: the sheared, stuck block lets go of
+    its shear (the face follows the platen, no tangential force), and friction is back on for
+    the next load: a further platen travel shears the block from the released state (G A / H
+    times the new travel, within 25 %) - the muscles mode's ``muscle_frictionless_closing``."""
+    mu = 0.74
+    sc = _pressed(mu, augmented_friction=True)
+    d = 0.08
+    sc.move((d, 0.0, -DELTA))
+    N, Ft = sc.forces()
+    assert np.linalg.norm(Ft) > 0.15 * mu * N
+    sc.contact.apply_history()
+    sc.contact.set_friction(0.0)
+    sc.move((d, 0.0, -DELTA), initial=1.0)
+    sc.contact.release_stick()
+    sc.contact.set_friction(mu)
+    N1, F1 = sc.forces()
+    assert np.linalg.norm(F1) < 1e-6 * N1
+    assert sc.slip_mm() == pytest.approx(d, rel=1e-2)
+    assert np.linalg.norm(_contact_force(sc)[:2]) < 1e-6 * N1  # the data balance the state
+    s1 = sc.slip_mm()
+    sc.move((d + 0.04, 0.0, -DELTA))
+    N2, F2 = sc.forces()
+    G = E_MPA / (2 * (1 + NU))
+    assert abs(sc.slip_mm() - s1) < 2 * PEN_TOL
+    assert np.linalg.norm(F2) == pytest.approx(G * L_MM**2 / H_MM * 0.04, rel=0.25)
+    with pytest.raises(InputError, match="mu = -1"):
+        sc.contact.set_friction(-1.0)

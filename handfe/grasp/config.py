@@ -92,6 +92,11 @@ class SolverSpec:
     # penalty's ~1 mm at 20 N (off by default; all updates after a balanced load made a jump
     # the re-balance needed FE step cuts to 1/16 for - run r3, docs/grasp.md)
     muscle_uzawa: bool = False
+    # muscles mode: the kinematic closing runs frictionless (mu as a Constant set to 0), then
+    # the stick anchors are set on the closed state and friction is switched on, so the torque
+    # homotopy starts from pads that carry normal pressure only: the closing is a numerical
+    # device and the shear it would build up is not data (docs/grasp.md, 3 Dec 2026)
+    muscle_frictionless_closing: bool = False
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

@@ -1289,9 +1289,23 @@ class GraspFE:
         3. Uzawa updates remove the penetration, and the balance is re-established (three
            times at most), so the reported residual is the one with the final multipliers."""
         s = self.wf.solver
-        with self._loose():
-            self._close_digits()
-        self._tighten()  # the holding torques come from the tissue residual
+        c = self.contact
+        frictionless = s.muscle_frictionless_closing and c.u_ref is not None
+        mu = c.mu
+        if frictionless:
+            self.say(f"  closing frictionless (mu {mu:g} from the torque load on)")
+            c.set_friction(0.0)
+        try:
+            with self._loose():
+                self._close_digits()
+            self._tighten()  # the holding torques come from the tissue residual
+        finally:
+            if frictionless:
+                c.set_friction(mu)
+        if frictionless:
+            # stick anchors on the closed state: zero tangential traction, so the state with
+            # friction on is the frictionless one and needs no re-solve
+            c.release_stick()
         if s.dip_pip_coupling > 0.0:
             idx = {j.name: i for i, j in enumerate(self.joints)}
             self.coupled = [(idx[f"{j.digit}_pip"], i, s.dip_pip_coupling)
