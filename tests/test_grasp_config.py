@@ -643,6 +643,58 @@ def test_muscles_mode_failure_keeps_the_last_balanced_load(monkeypatch):
     assert np.array_equal(fake.tau_muscle, [900.0, 400.0])
 
 
+def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(monkeypatch):
+    """``muscle_frictionless_closing``: the closing (and its tight solve) runs at mu = 0, the
+    stick anchors are then set on the closed state, and the torque homotopy runs at the
+    grasp's mu; a closing that fails leaves mu restored."""
+    import dataclasses
+    from types import SimpleNamespace
+
+    import handfe.grasp.fe as fe
+    from handfe.errors import SolverError
+    from handfe.grasp.scene import GraspFE
+
+    events: list = []
+
+    def fake_run(fail: bool):
+        fake = _FakeMuscles(np.array([900.0, 400.0]))
+        fake.wf = SimpleNamespace(solver=dataclasses.replace(
+            fake.wf.solver, muscle_frictionless_closing=True))
+        c = SimpleNamespace(uzawa=None, u_ref=object(), mu=0.74)
+
+        def set_friction(mu):
+            c.mu = mu
+            events.append(("mu", mu))
+
+        c.set_friction = set_friction
+        c.release_stick = lambda: events.append(("release", c.mu))
+        fake.contact = c
+        close, tighten = fake._close_digits, fake._tighten
+
+        def closing():
+            events.append(("close", c.mu))
+            if fail:
+                raise SolverError("closing step 3: Newton failed", load_step=3)
+            close()
+
+        fake._close_digits = closing
+        fake._tighten = lambda: (events.append(("tighten", c.mu)), tighten())[1]
+        monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
+            -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+        GraspFE.solve_muscles(fake)
+        return fake
+
+    fake = fake_run(fail=False)
+    assert events[:5] == [("mu", 0.0), ("close", 0.0), ("tighten", 0.0), ("mu", 0.74),
+                          ("release", 0.74)]
+    assert fake.contact.mu == 0.74
+    assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+    events.clear()
+    with pytest.raises(SolverError, match="closing step 3"):
+        fake_run(fail=True)
+    assert events == [("mu", 0.0), ("close", 0.0), ("mu", 0.74)]
+
+
 def test_response_ratios():
     from handfe.grasp.scene import response_ratios
 
