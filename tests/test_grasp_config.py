@@ -506,7 +506,7 @@ class _FakeMuscles:
                                    skeleton=lambda t: np.array(t, dtype=float),
                                    motions=lambda sk: sk)
         self.lig = SimpleNamespace(torques=lambda m, sk, joints: -20.0 * np.radians(sk))
-        self.contact = SimpleNamespace(uzawa=None)
+        self.contact = SimpleNamespace(uzawa=None, u_ref=None)  # frictionless: no switch
         self.solver = self.bc = None
         self.problem = SimpleNamespace(comm=None)
         self.theta = np.zeros(2)
@@ -747,7 +747,7 @@ class _FakePinch(_FakeMuscles):
                        SimpleNamespace(name="index_mcp", digit="index")]
         self.grasp = SimpleNamespace(digits=("thumb", "index"))
         self.object_free = free
-        self.contact = SimpleNamespace(uzawa=None, translation=SimpleNamespace(
+        self.contact = SimpleNamespace(uzawa=None, u_ref=None, translation=SimpleNamespace(
             value=np.zeros(3)))
         self.force_target = np.zeros(3)
         self._t_response: list = []

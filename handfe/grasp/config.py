@@ -95,8 +95,9 @@ class SolverSpec:
     # muscles mode: the kinematic closing runs frictionless (mu as a Constant set to 0), then
     # the stick anchors are set on the closed state and friction is switched on, so the torque
     # homotopy starts from pads that carry normal pressure only: the closing is a numerical
-    # device and the shear it would build up is not data (docs/grasp.md, 3 Dec 2026)
-    muscle_frictionless_closing: bool = False
+    # device and the shear it would build up is not data. Default since 3 Dec 2026: the coarse
+    # pinch then balanced up to 0.406 of the EMG load instead of 0.1875 (docs/grasp.md)
+    muscle_frictionless_closing: bool = True
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True
