@@ -687,7 +687,7 @@ def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(
     fake = fake_run(fail=False)
     assert events[:5] == [("mu", 0.0), ("close", 0.0), ("tighten", 0.0), ("mu", 0.74),
                           ("release", 0.74)]
-    assert fake.contact.mu == 0.74
+    assert fake.contact.mu == 0.74 and fake.closing_mu == 0.0  # summary.json's closing_mu
     assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
     events.clear()
     with pytest.raises(SolverError, match="closing step 3"):

@@ -118,6 +118,7 @@ def test_precision_light_grip_end_to_end_two_ranks(light_pinch):
     assert s["max_penetration_mm"] <= wf.solver.penetration_tol_mm
     assert s["skipped"]["digits"] == ["ring", "little"]
     assert s["torque_balance"].startswith("not imposed")  # angles mode: joints prescribed
+    assert s["closing_mu"] == pytest.approx(0.74)  # angles mode: the grasp's friction
     for r in ("ring", "little", "palm"):
         assert res.regions[r]["normal_force_N"] == 0.0
     for d in ("thumb", "index", "middle"):

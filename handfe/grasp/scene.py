@@ -1295,6 +1295,7 @@ class GraspFE:
         if frictionless:
             self.say(f"  closing frictionless (mu {mu:g} from the torque load on)")
             c.set_friction(0.0)
+            self.closing_mu = 0.0
         try:
             with self._loose():
                 self._close_digits()
@@ -1606,6 +1607,9 @@ class GraspFE:
                 "outer_iterations": self.outer_iterations,
                 "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
                 "closing_deg": getattr(self, "closing_deg", {}),
+                # friction coefficient of the kinematic closing (muscles mode: 0 with
+                # muscle_frictionless_closing; mu of the grasp otherwise)
+                "closing_mu": float(getattr(self, "closing_mu", self.contact.mu)),
                 "stalled_digits": self.stalled,
                 "digit_force_N": getattr(self, "digit_force_N", {}),
                 "penalty_N_per_mm3": float(self.contact.k_n.value),
