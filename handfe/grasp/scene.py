@@ -1278,7 +1278,9 @@ class GraspFE:
 
         1. The digits close kinematically until each presses with ``digit_force_N`` (as in the
            angles mode, without its final Uzawa phase): every digit is in contact, so every
-           released joint has a tissue stiffness to push against.
+           released joint has a tissue stiffness to push against. With
+           ``muscle_frictionless_closing`` (default) the closing runs at mu = 0 and the stick
+           anchors are then set on the closed state, so the pads start without shear.
         2. At that posture the joints hold the torque ``tau_hold = -(ligament + tissue)``.
            The applied joint torque goes from ``tau_hold`` to the muscle torque in load steps
            (``muscle_steps``; a step whose torque Newton fails is halved); at each step Newton
