@@ -918,3 +918,19 @@ def test_friction_demand_matches_a_dense_search_and_a_closed_form():
         assert r == pytest.approx(brute, rel=1e-4, abs=1e-9)
         if np.isfinite(r):
             assert np.allclose(A @ F, b) and np.linalg.norm(F) <= 50.0 + 1e-9
+
+
+def test_friction_use_names_a_digit_off_the_object():
+    """The stall message of the torque balance: each digit's tangential/normal against mu;
+    a digit without contact force is named as off the object (not a ratio of nan)."""
+    from types import SimpleNamespace
+
+    from handfe.grasp.scene import GraspFE
+
+    reg = {"thumb": {"normal_force_N": 0.0, "tangential_force_N": 0.0},
+           "index": {"normal_force_N": 5.0, "tangential_force_N": 3.6}}
+    fake = SimpleNamespace(metrics=lambda: (reg, None),
+                           grasp=SimpleNamespace(friction=0.74, digits=("thumb", "index")))
+    msg = GraspFE._friction_use(fake)
+    assert msg == ("contact forces (mu = 0.74): thumb 0 N (off the object), "
+                   "index 5.00 N, tangential/normal 0.72 (at the friction limit)")

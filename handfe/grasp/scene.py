@@ -1522,7 +1522,10 @@ class GraspFE:
         parts = []
         for d in self.grasp.digits:
             fn, ft = reg[d]["normal_force_N"], reg[d]["tangential_force_N"]
-            ratio = ft / fn if fn > 0 else float("nan")
+            if fn <= 0.0:
+                parts.append(f"{d} 0 N (off the object)")
+                continue
+            ratio = ft / fn
             # the patch's ratio stays a little below mu while its rim still sticks
             parts.append(f"{d} {fn:.2f} N, tangential/normal {ratio:.2f}"
                          + (" (at the friction limit)" if ratio >= 0.9 * mu else ""))
