@@ -1293,8 +1293,8 @@ class GraspFE:
         s = self.wf.solver
         c = self.contact
         frictionless = s.muscle_frictionless_closing and c.u_ref is not None
-        mu = c.mu if frictionless else 0.0
         if frictionless:
+            mu = c.mu
             self.say(f"  closing frictionless (mu {mu:g} from the torque load on)")
             c.set_friction(0.0)
             self.closing_mu = 0.0
