@@ -18,9 +18,13 @@ final angles from ``R/summary.json``), carried rigidly with the distal phalanx a
 vary. Scanned: the two released DOFs over +-``--span`` deg (1 deg grid), keeping only postures
 whose contact point stays within +-``--depth`` mm of the ball surface (compression), and the
 point moved over the pad by up to +-``--roll`` mm. Ligament torques at each posture; the
-tissue's own bending torque (a few % of the EMG's) is left out. Output: CSV on stdout.
+tissue's own bending torque (a few % of the EMG's) is left out. ``--pip-extension-Nmm``
+adds a constant extension torque at each finger PIP (what a passive joint moment or the
+extensor mechanism, neither in the nine-muscle model, would supply) to ask how much of it a
+balance within mu at the run's posture needs. Output: CSV on stdout.
 
     .venv/bin/python scripts/pad_friction_cone.py --run R [--span 10] [--roll 3] [--depth 1.5]
+        [--pip-extension-Nmm 0,50,100]
 """
 from __future__ import annotations
 
@@ -76,7 +80,14 @@ def main() -> None:
                     help="+- mm a posture may move the contact point off the ball surface")
     ap.add_argument("--max-force", type=float, default=60.0,
                     help="largest pad force, N, the held joints may add along the free direction")
+    ap.add_argument("--pip-extension-Nmm", default="0",
+                    help="comma-separated extension torques, N mm, added at each finger PIP "
+                         "(one set of rows per value; the thumb has no PIP)")
     args = ap.parse_args()
+    try:
+        extensions = [float(x) for x in args.pip_extension_Nmm.split(",")]
+    except ValueError:
+        ap.error(f"--pip-extension-Nmm {args.pip_extension_Nmm!r}: not a list of numbers")
     for f in ("summary.json", "pressure_facets.npz"):
         if not (args.run / f).is_file():
             ap.error(f"--run {args.run}: no {f} (a finished run folder of `handfe run` with "
@@ -93,7 +104,7 @@ def main() -> None:
     subj = load_subject(sd)
     forces = summ["muscle_forces_N"]  # the run's: its trial and muscle_scale applied
     points = contact_centroids(args.run)
-    print("digit,load_fraction,ratio_base_posture,least_ratio_over_scan,best_angles_deg,"
+    print("digit,pip_extension_Nmm,load_fraction,ratio_base_posture,least_ratio_over_scan,best_angles_deg,"
           "postures_within_mu,postures_touching")
     for d in grasp.digits:
         if d not in points:
@@ -129,17 +140,20 @@ def main() -> None:
                 pc = centre + R_ball * n
                 pts.append((B.T @ np.array([np.cross(a, pc - ca) for a, ca in axes]), n))
             postures.append((dq, q, ligs.torques(kin.motions(skel), skel, joints), pts))
-        for frac in (0.25, 0.5, 0.5625, 0.75, 1.0):
+        for ext, frac in itertools.product(extensions, (0.25, 0.5, 0.5625, 0.75, 1.0)):
+            tau_x = np.array([-ext if j.name.endswith("_pip") else 0.0 for j in joints])
+            if ext and not tau_x.any():
+                continue
             best, best_q, at0, n_ok = np.inf, None, np.inf, 0
             for dq, q, tau_l, pts in postures:
-                b = -B.T @ (frac * tau_m + tau_l)
+                b = -B.T @ (frac * tau_m + tau_l + tau_x)
                 rmin = min(friction_demand(A, b, n, args.max_force)[0] for A, n in pts)
                 n_ok += rmin <= mu
                 if dq == (0.0, 0.0):
                     at0 = rmin
                 if rmin < best:
                     best, best_q = rmin, q
-            print(f"{d},{frac},{at0:.3f},{best:.3f},{' '.join(f'{x:.0f}' for x in best_q)},"
+            print(f"{d},{ext:g},{frac},{at0:.3f},{best:.3f},{' '.join(f'{x:.0f}' for x in best_q)},"
                   f"{n_ok},{len(postures)}")
 
 
