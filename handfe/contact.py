@@ -601,6 +601,28 @@ class UzawaUpdate:
         pen = float(np.max(-self._gfun.x.array[self._dofs], initial=0.0))
         return max(0.0, self._comm.allreduce(pen, op=MPI.MAX))
 
+    def peak_pressure(self) -> float:
+        """Largest nodal contact pressure (MPa) of the current state, over all ranks."""
+        from mpi4py import MPI
+
+        self._pfun.interpolate(self._p)
+        p = float(np.max(self._pfun.x.array[self._dofs], initial=0.0))
+        return max(0.0, self._comm.allreduce(p, op=MPI.MAX))
+
+    def rescale(self, k_old: float, k_new: float) -> None:
+        """Multipliers for a normal penalty changed from ``k_old`` to ``k_new`` (MPa/mm) that
+        keep every node's trial pressure ``lambda - k g``: lambda += (k_new - k_old) g. The
+        tractions of the current state stay; only the stiffness of what follows changes. A node
+        with a gap (g >= 0) and no pressure gets lambda = 0, so its force starts at contact
+        (a positive multiplier there would push before touching)."""
+        self._gfun.interpolate(self._g)
+        lam = self._lam.x.array
+        d = self._dofs
+        g = self._gfun.x.array[d]
+        keep = (lam[d] - k_old * g > 0.0) | (g < 0.0)
+        lam[d] = np.where(keep, lam[d] + (k_new - k_old) * g, 0.0)
+        self._lam.x.scatter_forward()
+
     def __call__(self) -> tuple[float, float]:
         from mpi4py import MPI
 

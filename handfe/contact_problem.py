@@ -191,6 +191,26 @@ class RigidContact:
         if self._k_t is not None:
             self._k_t.value = self.stick_ratio * float(k_n)
 
+    def stiffen(self, k_n: float) -> None:
+        """Raise the normal penalty to ``k_n`` (MPa/mm; the stick spring follows) keeping the
+        contact tractions of the current state: the normal multipliers take up (k_n - k) x
+        gap (:meth:`UzawaUpdate.rescale`) and the stick anchors move so that k_t x slip is
+        unchanged (slip x k / k_n). What changes is the stiffness of what follows: pressing
+        deeper by dg adds k_n dg instead of k dg. Needs the augmented contact; no-op if k_n is
+        not above the current penalty."""
+        if self.uzawa is None:
+            raise InputError("stiffen: the contact has no multipliers (augmented = False)")
+        k = float(self.k_n.value)
+        if not k_n > k:
+            return
+        self.apply_history()
+        self.uzawa.rescale(k, k_n)
+        if self.u_ref is not None:
+            self._slip.interpolate(self._slip_expr)
+            self.u_ref.x.array[:] += (1.0 - k / k_n) * self._slip.x.array
+            self.u_ref.x.scatter_forward()
+        self.set_penalty(k_n)
+
     def _tangential(self) -> np.ndarray:
         """Nodal tangential traction at the contact dofs, (n, 3), of the current state."""
         self._tT.interpolate(self._tT_expr)

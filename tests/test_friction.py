@@ -48,7 +48,8 @@ def _block(comm):
 class BlockScene:
     """Block on a plate, top clamped to a platen moved by ``platen`` (mm)."""
 
-    def __init__(self, mu: float, comm=MPI.COMM_WORLD, augmented_friction: bool = False):
+    def __init__(self, mu: float, comm=MPI.COMM_WORLD, augmented_friction: bool = False,
+                 element: str = "p2"):
         from handfe.contact import HalfSpace
         from handfe.contact_problem import RigidContact
         from handfe.materials import NeoHookean
@@ -58,7 +59,7 @@ class BlockScene:
         self.mu = mu
         self.mesh, self.ft = _block(comm)
         self.prob = HyperelasticProblem(self.mesh, NeoHookean.from_E_nu(E_MPA, NU),
-                                        disc=Discretisation("p2"))
+                                        disc=Discretisation(element))
         self.top = self.ft.find(2)
         self.platen = self.prob.fix(self.top)
         plate = HalfSpace(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
@@ -303,3 +304,40 @@ def test_release_stick_after_a_frictionless_solve_starts_stick_afresh():
     assert np.linalg.norm(F2) == pytest.approx(G * L_MM**2 / H_MM * 0.04, rel=0.25)
     with pytest.raises(InputError, match="mu = -1"):
         sc.contact.set_friction(-1.0)
+
+
+def _penalty_pressed(shear_mm: float) -> BlockScene:
+    """Pressed by DELTA and sheared (stuck) by ``shear_mm`` on the penalty alone (no Uzawa
+    updates: the tolerances are out of reach), so the face penetrates. P1, as the grasp: the
+    multipliers live at the vertices, where a P1 face's gap is exact."""
+    sc = BlockScene(0.74, augmented_friction=True, element="p1")
+    sc.contact.penetration_tol_mm = sc.contact.stick_tol_mm = 10.0
+    sc.move((0.0, 0.0, -DELTA), initial=0.5)
+    sc.move((shear_mm, 0.0, -DELTA), initial=0.5)
+    sc.contact.apply_history()
+    return sc
+
+
+def test_stiffen_keeps_the_tractions_and_stiffens_what_follows():
+    """``RigidContact.stiffen(8 k)`` on a penetrating, stuck block: the contact force of the
+    state (normal and friction) is unchanged, so the state stays balanced; a further press
+    then penetrates by much less than with the old penalty (the muscles mode raises the penalty
+    this way as the pads' pressure grows)."""
+    d, press = 0.04, 0.02
+    sc = _penalty_pressed(d)
+    F0 = _contact_force(sc)
+    pen0 = sc.contact.uzawa.penetration()
+    assert pen0 > 1e-3 and abs(F0[0]) > 0.1 * abs(F0[2])  # penetrating and sheared
+    k = float(sc.contact.k_n.value)
+    sc.contact.stiffen(8.0 * k)
+    assert float(sc.contact.k_n.value) == pytest.approx(8.0 * k)
+    np.testing.assert_allclose(_contact_force(sc), F0, rtol=0.0, atol=1e-6 * abs(F0[2]))
+    sc.move((d, 0.0, -DELTA - press))
+    ref = _penalty_pressed(d)
+    ref.move((d, 0.0, -DELTA - press))
+    grow, grow_ref = (s.contact.uzawa.penetration() - pen0 for s in (sc, ref))
+    assert grow < 0.3 * grow_ref
+    # pressing deeper by `press` adds about the same force either way (the tissue decides)
+    assert _contact_force(sc)[2] == pytest.approx(_contact_force(ref)[2], rel=0.2)
+    sc.contact.stiffen(k)  # not above the penalty: nothing changes
+    assert float(sc.contact.k_n.value) == pytest.approx(8.0 * k)
