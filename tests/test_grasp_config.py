@@ -570,6 +570,11 @@ class _FakeMuscles:
     def augment(self, *a, **k):
         pass
 
+    def _penalty_to_pressure(self):
+        from handfe.grasp.scene import GraspFE
+
+        GraspFE._penalty_to_pressure(self)
+
     def digit_forces(self):
         return {"index": float(-self._tissue(self.theta).sum() / 40.0)}
 
@@ -641,6 +646,63 @@ def test_muscles_mode_failure_keeps_the_last_balanced_load(monkeypatch):
     assert np.all(tq["muscle"] < [900.0, 400.0])                      # at part of the load
     assert fake.digit_force_N == fake.digit_forces()                   # of that state
     assert np.array_equal(fake.tau_muscle, [900.0, 400.0])
+
+
+def test_muscles_mode_failed_final_phase_reports_the_balanced_full_load(monkeypatch):
+    # the final Uzawa round moves the pads (here: 5 deg) and its re-balance fails: the state
+    # reported (partial) is the balanced full load before that round, not the moved one (the
+    # coarse cylinder's partial summary had relative torque residuals of 0.8-1.0 and 957 N of
+    # grip that way)
+    import handfe.grasp.fe as fe
+    from handfe.errors import SolverError
+    from handfe.grasp.scene import GraspFE
+
+    class FailingFinal(_FakeMuscles):
+        final = False
+
+        def augment(self, *a, **k):
+            self.final = True
+            self.theta = self.theta + 5.0
+
+        def _go_to(self, theta, *, label, max_cuts=6):
+            if self.final:
+                raise SolverError(f"{label}: Newton failed", load_step=1)
+            super()._go_to(theta, label=label)
+
+        def _friction_use(self):
+            return "contact forces: -"
+
+    fake = FailingFinal([900.0, 400.0])
+    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
+        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    with pytest.raises(SolverError, match="full muscle load"):
+        GraspFE.solve_muscles(fake)
+    assert fake.muscle_load == 1.0
+    assert np.all(fake.torque["relative"] <= 10 * fake.wf.solver.torque_rtol)
+    assert np.array_equal(fake.torque["muscle"], [900.0, 400.0])
+
+
+def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
+    import dataclasses
+    from types import SimpleNamespace
+
+    from handfe.grasp.scene import GraspFE
+
+    calls: list[float] = []
+
+    def fake(on: bool, k: float):
+        f = _FakeMuscles([900.0, 400.0])
+        f.wf = SimpleNamespace(solver=dataclasses.replace(
+            f.wf.solver, muscle_penalty_follows_pressure=on))
+        f.contact = SimpleNamespace(uzawa=SimpleNamespace(peak_pressure=lambda: 0.2),
+                                    adaptive_penalty=10.0, h_mm=2.0,
+                                    k_n=SimpleNamespace(value=k), stiffen=calls.append)
+        return f
+
+    GraspFE._penalty_to_pressure(fake(True, 0.5))   # target 10 x 0.2 MPa / 2 mm = 1 N/mm3
+    GraspFE._penalty_to_pressure(fake(True, 2.0))   # already stiffer
+    GraspFE._penalty_to_pressure(fake(False, 0.5))  # off
+    assert calls == [pytest.approx(1.0)]
 
 
 def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(monkeypatch):

@@ -1336,6 +1336,7 @@ class GraspFE:
                 self.force_target = (1.0 - lam) * f_hold
                 snap = self._snapshot()
                 self.say(f"  muscle load {lam:.3f}")
+                self._penalty_to_pressure()
                 ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
                                                 else s.torque_rtol, label=f"muscle load {lam:.3g}")
                 if ok:
@@ -1348,13 +1349,18 @@ class GraspFE:
                     raise SolverError(f"muscle load {lam:.3g} (from {done:.3g}): {why}",
                                       load_step=len(self.steps) + 1, load_factor=done)
                 self.say(f"    muscle load {lam:.3g} failed ({why}): step halved")
+            self._penalty_to_pressure()
+            balanced = self._snapshot()  # a failed round reports this, not an unbalanced state
             for _ in range(3):
                 self.augment()
                 ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)")
                 pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
+                if ok:
+                    balanced = self._snapshot()
                 if ok and pen <= s.penetration_tol_mm:
                     break
             if not ok:
+                self._restore(balanced)
                 raise SolverError(f"torque balance at full muscle load: {why}",
                                   load_step=len(self.steps) + 1, load_factor=1.0)
         except SolverError:
@@ -1370,6 +1376,24 @@ class GraspFE:
             self.tau_muscle = tau_m
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
+
+    def _penalty_to_pressure(self) -> None:
+        """``solver.muscle_penalty_follows_pressure``: before a muscle load (and the final Uzawa
+        phase) raise k_n to adaptive_penalty x the pads' peak pressure / facet size, keeping
+        the tractions of the balanced state (:meth:`RigidContact.stiffen`). Without it k_n
+        stays the closing's (~1 N per digit) while the EMG load presses the pads 20-30x
+        harder, and they sink in by mm: the coarse cylinder reached the full load 2.1 mm deep,
+        and each Uzawa round at full load then moved the pads so far that a digit lifted off."""
+        c = self.contact
+        if not (self.wf.solver.muscle_penalty_follows_pressure and c.uzawa is not None
+                and c.adaptive_penalty is not None):
+            return
+        k = float(c.k_n.value)
+        target = c.adaptive_penalty * c.uzawa.peak_pressure() / c.h_mm
+        if target > k:
+            c.stiffen(target)
+            self.say(f"    penalty {k:.3g} -> {target:.3g} N/mm3 (peak pressure x "
+                     f"{c.adaptive_penalty:g} / {c.h_mm:.2f} mm; tractions kept)")
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
