@@ -699,10 +699,11 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
                                     k_n=SimpleNamespace(value=k), stiffen=calls.append)
         return f
 
-    GraspFE._penalty_to_pressure(fake(True, 0.5))   # target 10 x 0.2 MPa / 2 mm = 1 N/mm3
-    GraspFE._penalty_to_pressure(fake(True, 2.0))   # already stiffer
+    # target: 0.2 MPa x max(10 / 2 mm, 1 / step_penetration_mm = 1 / 0.1 mm) = 2 N/mm3
+    GraspFE._penalty_to_pressure(fake(True, 0.5))
+    GraspFE._penalty_to_pressure(fake(True, 2.5))   # already stiffer
     GraspFE._penalty_to_pressure(fake(False, 0.5))  # off
-    assert calls == [pytest.approx(1.0)]
+    assert calls == [pytest.approx(2.0)]
 
 
 def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(monkeypatch):

@@ -1379,8 +1379,10 @@ class GraspFE:
 
     def _penalty_to_pressure(self) -> None:
         """``solver.muscle_penalty_follows_pressure``: before a muscle load (and the final Uzawa
-        phase) raise k_n to adaptive_penalty x the pads' peak pressure / facet size, keeping
-        the tractions of the balanced state (:meth:`RigidContact.stiffen`). Without it k_n
+        phase) raise k_n to the larger of adaptive_penalty x the pads' peak pressure / facet
+        size and peak pressure / step_penetration_mm (the first alone is 0.4 mm of penalty
+        depth per peak pressure on the coarse hand's 4 mm facets), keeping the tractions of
+        the balanced state (:meth:`RigidContact.stiffen`). Without it k_n
         stays the closing's (~1 N per digit) while the EMG load presses the pads 20-30x
         harder, and they sink in by mm: the coarse cylinder reached the full load 2.1 mm deep,
         and each Uzawa round at full load then moved the pads so far that a digit lifted off."""
@@ -1389,11 +1391,12 @@ class GraspFE:
                 and c.adaptive_penalty is not None):
             return
         k = float(c.k_n.value)
-        target = c.adaptive_penalty * c.uzawa.peak_pressure() / c.h_mm
+        p = c.uzawa.peak_pressure()
+        target = p * max(c.adaptive_penalty / c.h_mm, 1.0 / self.wf.solver.step_penetration_mm)
         if target > k:
             c.stiffen(target)
-            self.say(f"    penalty {k:.3g} -> {target:.3g} N/mm3 (peak pressure x "
-                     f"{c.adaptive_penalty:g} / {c.h_mm:.2f} mm; tractions kept)")
+            self.say(f"    penalty {k:.3g} -> {target:.3g} N/mm3 (peak pressure {p:.3g} MPa; "
+                     "tractions kept)")
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
