@@ -14,9 +14,12 @@ subcutaneous tissue are Ogden N=3 (near-incompressible, P1 displacement + DG0 pr
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:
-  muscles  EXPERIMENTAL, does not reach the full EMG load yet (on the pinch thumb and index
-           slide on the fixed ball from 40-60 % of it; a run that gives up writes the last
-           balanced load's results, marked partial; docs/grasp.md): after the angles-mode closing,
+  muscles  EXPERIMENTAL, no run at the EMG forces has finished: the coarse cylinder
+           balances the full EMG load with its pads 2.1 mm deep on the penalty, then its
+           final Uzawa phase fails; the pinch stalls at 41 % of the load, the index curled
+           off its friction cone; a run that gives up writes the last balanced load's
+           results, marked partial; docs/grasp.md.
+           After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
            and the released flexion angles are solved so that muscle + ligament +
