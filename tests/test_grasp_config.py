@@ -700,10 +700,11 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
         return f
 
     # target: 0.2 MPa x max(10 / 2 mm, 1 / step_penetration_mm = 1 / 0.1 mm) = 2 N/mm3
-    GraspFE._penalty_to_pressure(fake(True, 0.5))
+    GraspFE._penalty_to_pressure(fake(True, 1.5))
+    GraspFE._penalty_to_pressure(fake(True, 0.5))   # at most doubled per call
     GraspFE._penalty_to_pressure(fake(True, 2.5))   # already stiffer
     GraspFE._penalty_to_pressure(fake(False, 0.5))  # off
-    assert calls == [pytest.approx(2.0)]
+    assert calls == [pytest.approx(2.0), pytest.approx(1.0)]
 
 
 def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(monkeypatch):
