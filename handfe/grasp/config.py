@@ -99,11 +99,11 @@ class SolverSpec:
     # pinch then balanced up to 0.406 of the EMG load instead of 0.1875 (docs/grasp.md)
     muscle_frictionless_closing: bool = True
     # muscles mode: before each muscle load (and the final Uzawa phase) k_n rises to the pads'
-    # peak pressure x max(adaptive_penalty / facet size, 1 / step_penetration_mm), with the
-    # tractions of the balanced state kept (RigidContact.stiffen), so the pads do not sink in
-    # by mm under the EMG load on the closing's soft penalty. Experimental, off: on the coarse
-    # cylinder the 7x stiffer k_n at load 0.5 made the FE Newton of the next torque step fail
-    # through every cut (docs/grasp.md, fourteenth session)
+    # peak pressure x max(adaptive_penalty / facet size, 1 / step_penetration_mm), at most 2x
+    # per load, with the tractions of the balanced state kept (RigidContact.stiffen), so the
+    # pads do not sink in by mm under the EMG load on the closing's soft penalty.
+    # Experimental, off: on the coarse cylinder an uncapped 7x stiffer k_n at load 0.5 made
+    # the FE Newton of the next torque step fail through every cut (docs/grasp.md, 14th session)
     muscle_penalty_follows_pressure: bool = False
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
