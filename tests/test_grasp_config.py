@@ -570,6 +570,9 @@ class _FakeMuscles:
     def augment(self, *a, **k):
         pass
 
+    def _friction_use(self):
+        return "contact forces: -"
+
     def _penalty_to_pressure(self):
         from handfe.grasp.scene import GraspFE
 
@@ -584,13 +587,20 @@ class _FakeMuscles:
         return GraspFE._balance_torques(self, rtol, label=label)
 
 
-def _fake_muscles_run(monkeypatch, tau, coupling=0.0, tangent_factor=1.0):
+def _exact_tangent(monkeypatch, fake, factor=1.0):
+    """The condensed torque tangent of a :class:`_FakeMuscles`: its tissue torque's exact
+    derivative (times ``factor``, a tangent that over-predicts the response)."""
     import handfe.grasp.fe as fe
+
+    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: factor * np.diag(
+        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+
+
+def _fake_muscles_run(monkeypatch, tau, coupling=0.0, tangent_factor=1.0):
     from handfe.grasp.scene import GraspFE
 
     fake = _FakeMuscles(tau, coupling)
-    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: tangent_factor * np.diag(
-        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    _exact_tangent(monkeypatch, fake, tangent_factor)
     GraspFE.solve_muscles(fake)
     return fake
 
@@ -622,7 +632,6 @@ def test_muscles_mode_failure_keeps_the_last_balanced_load(monkeypatch):
     # the FE solve fails beyond 20 deg of PIP flexion (as when a pad rolls off the object):
     # the homotopy halves its step until it gives up, and the state it leaves is the last
     # balanced load's, with the torque applied there (what run_workflow writes as partial)
-    import handfe.grasp.fe as fe
     from handfe.errors import SolverError
     from handfe.grasp.scene import GraspFE
 
@@ -632,12 +641,8 @@ def test_muscles_mode_failure_keeps_the_last_balanced_load(monkeypatch):
                 raise SolverError(f"{label}: Newton failed", load_step=1)
             super()._go_to(theta, label=label)
 
-        def _friction_use(self):
-            return "contact forces: -"
-
     fake = Failing([900.0, 400.0])
-    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
-        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    _exact_tangent(monkeypatch, fake)
     with pytest.raises(SolverError, match="muscle load"):
         GraspFE.solve_muscles(fake)
     assert 0.0 < fake.muscle_load < 1.0 and fake.theta[0] <= 20.0
@@ -653,7 +658,6 @@ def test_muscles_mode_failed_final_phase_reports_the_balanced_full_load(monkeypa
     # reported (partial) is the balanced full load before that round, not the moved one (the
     # coarse cylinder's partial summary had relative torque residuals of 0.8-1.0 and 957 N of
     # grip that way)
-    import handfe.grasp.fe as fe
     from handfe.errors import SolverError
     from handfe.grasp.scene import GraspFE
 
@@ -669,12 +673,8 @@ def test_muscles_mode_failed_final_phase_reports_the_balanced_full_load(monkeypa
                 raise SolverError(f"{label}: Newton failed", load_step=1)
             super()._go_to(theta, label=label)
 
-        def _friction_use(self):
-            return "contact forces: -"
-
     fake = FailingFinal([900.0, 400.0])
-    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
-        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    _exact_tangent(monkeypatch, fake)
     with pytest.raises(SolverError, match="full muscle load"):
         GraspFE.solve_muscles(fake)
     assert fake.muscle_load == 1.0
@@ -714,7 +714,6 @@ def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(
     import dataclasses
     from types import SimpleNamespace
 
-    import handfe.grasp.fe as fe
     from handfe.errors import SolverError
     from handfe.grasp.scene import GraspFE
 
@@ -743,8 +742,7 @@ def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(
 
         fake._close_digits = closing
         fake._tighten = lambda: (events.append(("tighten", c.mu)), tighten())[1]
-        monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
-            -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+        _exact_tangent(monkeypatch, fake)
         GraspFE.solve_muscles(fake)
         return fake
 
@@ -915,7 +913,6 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
     # followed by one Uzawa update; a load counts as balanced only with the pads within it
     from dataclasses import replace
 
-    import handfe.grasp.fe as fe
     from handfe.grasp.scene import GraspFE
 
     fake = _FakeMuscles([900.0, 400.0])
@@ -934,8 +931,7 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
     fake.contact.uzawa = type("U", (), {"penetration": lambda self: depth["mm"]})()
     fake.augment = augment
     fake._one_uzawa_update = lambda: GraspFE._one_uzawa_update(fake)
-    monkeypatch.setattr(fe, "condensed_torque_jacobian", lambda *a: np.diag(
-        -fake.A * fake.B * np.exp(fake.B * np.radians(fake.theta))))
+    _exact_tangent(monkeypatch, fake)
     ends = []
     balance = fake._balance_torques
 
