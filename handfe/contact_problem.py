@@ -158,7 +158,7 @@ class RigidContact:
         self.terms = ufl_contact_terms(problem.u, problem.vu, obstacle, self.translation,
                                        ds(tag), k_n=self.k_n, lambda_n=self.lambda_n, **kw)
         problem.add_residual(self.terms.residual)
-        self.uzawa = UzawaUpdate(self.terms, facets) if augmented else None
+        self.uzawa = UzawaUpdate(self.terms, facets, ds(tag), self.k_n) if augmented else None
         if mu > 0:
             # nodal slip and pressure at the anchor's dofs, for the return mapping in on_step
             n = self.terms.normal
@@ -191,25 +191,29 @@ class RigidContact:
         if self._k_t is not None:
             self._k_t.value = self.stick_ratio * float(k_n)
 
-    def stiffen(self, k_n: float) -> None:
+    def stiffen(self, k_n: float, *, match_forces: bool = True) -> float:
         """Raise the normal penalty to ``k_n`` (MPa/mm; the stick spring follows) keeping the
         contact tractions of the current state: the normal multipliers take up (k_n - k) x
-        gap (:meth:`UzawaUpdate.rescale`) and the stick anchors move so that k_t x slip is
-        unchanged (slip x k / k_n). What changes is the stiffness of what follows: pressing
-        deeper by dg adds k_n dg instead of k dg. Needs the augmented contact; no-op if k_n is
-        not above the current penalty."""
+        gap and are then corrected until each node's normal force is what it was
+        (:meth:`UzawaUpdate.rescale`: on a curved object a Gauss point is deeper than the
+        nodes), and the stick anchors move so that k_t x slip is unchanged (slip x k / k_n).
+        What changes is the stiffness of what follows: pressing deeper by dg adds k_n dg
+        instead of k dg. Needs the augmented contact; no-op (0) if k_n is not above the
+        current penalty. Returns the nodal normal-force mismatch left, relative to the largest
+        nodal force (0 with ``match_forces = False``: the nodal pressures only)."""
         if self.uzawa is None:
             raise InputError("stiffen: the contact has no multipliers (augmented = False)")
         k = float(self.k_n.value)
         if not k_n > k:
-            return
+            return 0.0
         self.apply_history()
-        self.uzawa.rescale(k, k_n)
+        off = self.uzawa.rescale(k, k_n, match_forces=match_forces)
         if self.u_ref is not None:
             self._slip.interpolate(self._slip_expr)
             self.u_ref.x.array[:] += (1.0 - k / k_n) * self._slip.x.array
             self.u_ref.x.scatter_forward()
         self.set_penalty(k_n)
+        return off
 
     def _tangential(self) -> np.ndarray:
         """Nodal tangential traction at the contact dofs, (n, 3), of the current state."""

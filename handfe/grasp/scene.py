@@ -1397,9 +1397,9 @@ class GraspFE:
         # FE Newton of the next torque step failing through every cut
         target = min(target, 2.0 * k)
         if target > k:
-            c.stiffen(target)
+            off = c.stiffen(target)
             self.say(f"    penalty {k:.3g} -> {target:.3g} N/mm3 (peak pressure {p:.3g} MPa; "
-                     "tractions kept)")
+                     f"nodal forces kept to {off:.1e})")
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
