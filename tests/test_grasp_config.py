@@ -586,6 +586,21 @@ class _FakeMuscles:
 
         return GraspFE._balance_torques(self, rtol, label=label)
 
+    def _balance(self, rtol, *, label):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._balance(self, rtol, label=label)
+
+    def _grip_stall(self):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._grip_stall(self)
+
+    def _scale_stall_to_grip(self):
+        from handfe.grasp.scene import GraspFE
+
+        GraspFE._scale_stall_to_grip(self)
+
 
 def _exact_tangent(monkeypatch, fake, factor=1.0):
     """The condensed torque tangent of a :class:`_FakeMuscles`: its tissue torque's exact
@@ -615,6 +630,33 @@ def test_muscles_mode_balances_the_torques_by_homotopy_from_the_closed_posture(m
     x = np.radians(fake.theta)
     assert np.allclose(fake.A * np.expm1(fake.B * x) + 20.0 * x, tau, rtol=2e-3)
     assert any("muscle load 0.250" in m for m in fake.log)
+
+
+def test_muscles_mode_accepts_fe_stalls_relative_to_the_grip(monkeypatch):
+    # the FE solves of the torque Newton accept a stall at <= muscle_stall_rtol x grip (the
+    # stiff pads of the coarse cylinder stalled at 4e-3 - 9e-3 N at 88 N of grip), never
+    # below the closing's absolute tolerance, and the tolerance is restored afterwards
+    from types import SimpleNamespace
+
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeMuscles(np.array([900.0, 400.0]))
+    _exact_tangent(monkeypatch, fake)
+    fake.solver = SimpleNamespace(stall_atol=1e-4)
+    seen = []  # (stall tolerance, grip in N) at each FE move
+
+    def go_to(theta, *, label, max_cuts=6):
+        seen.append((fake.solver.stall_atol, sum(fake.digit_forces().values())))
+        fake.theta = np.array(theta, dtype=float)
+
+    fake._go_to = go_to
+    GraspFE.solve_muscles(fake)
+    assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+    assert fake.solver.stall_atol == 1e-4
+    # each move runs with the tolerance of the grip it starts from
+    for tol, grip in seen:
+        assert tol == pytest.approx(max(1e-4, 1e-4 * grip))
+    assert max(g for _, g in seen) > 10.0  # N: the scaled tolerance was the one in force
 
 
 def test_muscles_mode_converges_when_the_tissue_gives_less_than_its_tangent(monkeypatch):
@@ -696,7 +738,8 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
             f.wf.solver, muscle_penalty_follows_pressure=on))
         f.contact = SimpleNamespace(uzawa=SimpleNamespace(peak_pressure=lambda: 0.2),
                                     adaptive_penalty=10.0, h_mm=2.0,
-                                    k_n=SimpleNamespace(value=k), stiffen=calls.append)
+                                    k_n=SimpleNamespace(value=k),
+                                    stiffen=lambda kn: calls.append(kn) or 0.0)
         return f
 
     # target: 0.2 MPa x max(10 / 2 mm, 1 / step_penetration_mm = 1 / 0.1 mm) = 2 N/mm3

@@ -105,6 +105,10 @@ class SolverSpec:
     # Experimental, off: on the coarse cylinder an uncapped 7x stiffer k_n at load 0.5 made
     # the FE Newton of the next torque step fail through every cut (docs/grasp.md, 14th session)
     muscle_penalty_follows_pressure: bool = False
+    # muscles mode: an FE solve of the torque Newton that stalls (backtracking at a contact
+    # kink) at <= muscle_stall_rtol x the grip (N) is accepted, as a stall <= 1e-4 N is in
+    # the closing; 0 = the closing's absolute 1e-4 N only
+    muscle_stall_rtol: float = field(default=1e-4, metadata=bounds(0.0, 1e-2))
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

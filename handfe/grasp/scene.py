@@ -1352,7 +1352,9 @@ class GraspFE:
             self._penalty_to_pressure()
             balanced = self._snapshot()  # a failed round reports this, not an unbalanced state
             for _ in range(3):
-                self.augment()
+                with self._grip_stall():
+                    self._scale_stall_to_grip()
+                    self.augment()
                 ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)")
                 pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
                 if ok:
@@ -1402,6 +1404,37 @@ class GraspFE:
                      f"nodal forces kept to {off:.1e})")
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
+        """:meth:`_balance` with the FE stall tolerance scaled to the grip (restored after)."""
+        with self._grip_stall():
+            return self._balance(rtol, label=label)
+
+    @contextlib.contextmanager
+    def _grip_stall(self):
+        """Inside, :meth:`_scale_stall_to_grip` may raise the FE stall tolerance; restored on
+        leaving."""
+        solver = self.solver
+        if solver is None:  # a stand-in without an FE solver
+            yield
+            return
+        base = solver.stall_atol
+        self._stall_base = base
+        try:
+            yield
+        finally:
+            solver.stall_atol = base
+
+    def _scale_stall_to_grip(self) -> None:
+        """FE solves of the torque Newton accept a backtracking stall at <= max(the base
+        tolerance, ``solver.muscle_stall_rtol`` x the grip): at 88 N of grip on the coarse
+        cylinder the stiffened pads stalled at 4e-3 - 9e-3 N (1e-4 of the grip, ~0.4 N mm of
+        torque at a 50 mm lever against a 1e-3 x 200-2000 N mm torque tolerance), and the
+        full steps from there inverted cells through every cut."""
+        if self.solver is None:
+            return
+        grip = float(sum(self.digit_forces().values()))
+        self.solver.stall_atol = max(self._stall_base, self.wf.solver.muscle_stall_rtol * grip)
+
+    def _balance(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
         until applied (``tau_muscle``) + ligament + tissue torque is <= ``rtol`` (relative) at
         every free joint and the object's net force is within ``rtol`` of the grip of its
@@ -1453,6 +1486,7 @@ class GraspFE:
                 gx = np.concatenate([g, L * f])
                 rel = max(rel, rel_f)
             self.say(msg)
+            self._scale_stall_to_grip()
             deep = uzawa and self.contact.uzawa.penetration() > s.step_penetration_mm
             if rel <= rtol and not deep:
                 self.torque = tq
