@@ -119,6 +119,23 @@ class OgdenP1Kernel:
         self._mu = self._mu_fn.x.array.reshape(-1, self._m)[self._blk]
         self._alpha = self._alpha_fn.x.array.reshape(-1, self._m)[self._blk]
 
+    def shear_modulus(self) -> np.ndarray:
+        """Incremental shear modulus of each cell (local and ghost, MPa) at the current state,
+        averaged over the principal planes: (1/3) sum_i sum_p mu_p lbar_i^alpha_p (lbar the
+        isochoric principal stretches). It is the exact modulus mu_p lbar^alpha_p of the
+        Ogden (Abaqus-form) terms where the stretches coincide, sum mu_p = mu0 at rest, and
+        grows with the stiffening: ~20 x mu0 for subcutaneous fat at 50 % uniaxial
+        compression. Clipped below at mu0."""
+        G = self._grad.eval(self.cells).reshape(-1, 3, 3)
+        F = G + np.eye(3)
+        C = np.einsum("cki,ckj->cij", F, F)
+        lam2 = np.clip(np.linalg.eigvalsh(C), 1e-12, None)
+        J = np.sqrt(np.prod(lam2, axis=1))
+        lbar = np.sqrt(lam2) / np.cbrt(J)[:, None]
+        mu, al = self._mu, self._alpha
+        mt = np.einsum("cp,cip->c", mu, lbar[:, :, None] ** al[:, None, :]) / 3.0
+        return np.maximum(mt, mu.sum(axis=1))
+
     def update(self, tangent: bool = True) -> None:
         """Stress (and the tangent if ``tangent``) from the current displacement, on ghost
         cells too (no scatter needed)."""

@@ -69,6 +69,13 @@ def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nresolve_linesearch = "l2"\n')
     with pytest.raises(ConfigError, match="resolve_linesearch"):
         load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nstabilisation_modulus = "secant"\n')
+    with pytest.raises(ConfigError, match="stabilisation_modulus"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\nelement = "p1-p0"\n[solver]\n'
+                         'stabilisation_modulus = "tangent"\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*stabilisation_modulus.*p1-p0"):
+        load_workflow(p)
 
 
 def test_secant_closing_increment():

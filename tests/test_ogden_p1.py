@@ -115,3 +115,41 @@ def test_kernel_forms_are_the_derivatives_of_the_energy():
     db.scale(1.0 / (2 * h))
     db.axpy(-1.0, Ae)
     assert db.norm() <= 1e-6 * Ae.norm()
+
+
+def test_kernel_shear_modulus_is_mu0_at_rest_and_mu_lambda_alpha_when_stretches_coincide():
+    """The incremental shear modulus behind the tangent stabilisation of p1-p1s
+    (:meth:`OgdenP1Kernel.shear_modulus`): sum mu_p = mu0 at rest and under a pure dilatation
+    (isochoric stretches 1); for an isochoric state with two equal stretches it is the mean
+    over the principal planes of mu_p lbar^alpha_p; under 50 % compression of the fat it is
+    ~20 x mu0 (the pads' stiffening that the mu0-based term ignores)."""
+    import ufl
+    from dolfinx import fem, mesh
+
+    fat = Ogden.subcutaneous(nu=0.499)
+    msh = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
+    V = fem.VectorFunctionSpace(msh, ("CG", 1))
+    u = fem.Function(V)
+    n = len(fat.mu_MPa)
+    D = fem.VectorFunctionSpace(msh, ("DG", 0), dim=n)
+    mu, alpha = fem.Function(D), fem.Function(D)
+    mu.x.array[:] = np.tile(fat.mu_MPa, mu.x.array.size // n)
+    alpha.x.array[:] = np.tile(fat.alpha, alpha.x.array.size // n)
+    dx1 = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": 1})
+    k = OgdenP1Kernel(msh, u, mu, alpha, ufl.TestFunction(V), ufl.TrialFunction(V), dx1)
+    mu0 = sum(fat.mu_MPa)
+
+    def modulus(stretch) -> np.ndarray:
+        s = np.asarray(stretch, dtype=float)
+        u.interpolate(lambda x: (s[:, None] - 1.0) * x)
+        return k.shear_modulus()
+
+    np.testing.assert_allclose(modulus([1.0, 1.0, 1.0]), mu0, rtol=1e-12)
+    np.testing.assert_allclose(modulus([0.8, 0.8, 0.8]), mu0, rtol=1e-9)
+    lam = 0.5
+    stretches = np.array([lam, lam ** -0.5, lam ** -0.5])
+    expect = sum(m * np.sum(stretches ** a) for m, a in zip(fat.mu_MPa, fat.alpha,
+                                                            strict=True)) / 3.0
+    got = modulus(stretches)
+    np.testing.assert_allclose(got, expect, rtol=1e-9)
+    assert 15.0 * mu0 < got.min() < 30.0 * mu0

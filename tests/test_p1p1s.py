@@ -25,3 +25,41 @@ def test_stabilised_p1p1_is_locking_free():
     assert d4 < d8  # converges from below, like Taylor-Hood
     # without the stabilisation equal-order P1-P1 is far off (5.5 mm)
     assert abs(cook(8, 0.0) - 8.11) > 10 * abs(d8 - 8.11)
+
+
+@pytest.mark.mpi
+def test_tangent_stabilisation_takes_the_cells_incremental_shear_modulus():
+    """``GraspProblem.update_stabilisation``: at rest the stabilisation keeps mu0; under a
+    uniform 40 % compression of the fat every tissue cell gets the kernel's incremental
+    shear modulus (the same on 1 and 2 ranks), and the change is reported."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from dolfinx import fem, mesh
+    from mpi4py import MPI
+
+    from handfe.grasp.fe import SKIN, GraspProblem
+    from handfe.materials import Ogden
+
+    comm = MPI.COMM_WORLD
+    msh = mesh.create_box(comm, [np.zeros(3), np.array([4.0, 4.0, 2.0])], [2, 2, 1],
+                          mesh.CellType.tetrahedron)
+    nc = msh.topology.index_map(3).size_local
+    ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), np.full(nc, SKIN, np.int32))
+    ft = mesh.meshtags(msh, 2, np.zeros(0, np.int32), np.zeros(0, np.int32))
+    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={})
+    fat = Ogden.subcutaneous(nu=0.499)
+    prob = GraspProblem(model, fat, fat, element="p1-p1s")
+    mu0 = sum(fat.mu_MPa)
+    assert prob.update_stabilisation() == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(prob.mu0.x.array, mu0, rtol=1e-12)
+    u = fem.Function(prob.W.sub(0).collapse()[0])
+    s = np.array([1.0 / 0.6 ** 0.5, 1.0 / 0.6 ** 0.5, 0.6])  # isochoric, 40 % compression
+    u.interpolate(lambda x: (s[:, None] - 1.0) * x)
+    prob.w.sub(0).interpolate(u)
+    prob.w.x.scatter_forward()
+    change = prob.update_stabilisation()
+    expect = sum(m * np.sum(s ** a) for m, a in zip(fat.mu_MPa, fat.alpha, strict=True)) / 3.0
+    assert expect > 5.0 * mu0
+    assert change == pytest.approx(expect / mu0 - 1.0, rel=1e-9)
+    np.testing.assert_allclose(prob.mu0.x.array, expect, rtol=1e-9)

@@ -159,6 +159,13 @@ class SolverSpec:
     # increase) from a converged state; "basic" falls back to "bt" from that state
     resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
     nu: float = field(default=0.49, metadata=bounds(0.3, 0.4999))
+    # shear modulus in the p1-p1s stabilisation beta h^2 / (2 mu) |grad p|^2: "initial" = the
+    # small-strain mu0 (0.6-1.2 kPa), "tangent" = each cell's incremental modulus at the last
+    # converged state (lagged). Under pad pressures >> mu0 the mu0 term lets the tissue lose
+    # volume and soften: a fat block pressed 3 mm into a ball carries 0.62 N with mu0, 1.22 N
+    # with the tangent modulus (n = 10; benchmarks/p1p1s_compression.py, docs/grasp.md)
+    stabilisation_modulus: str = field(default="initial", metadata=choices("initial",
+                                                                          "tangent"))
 
 
 @dataclass(frozen=True)
@@ -219,6 +226,9 @@ def load_workflow(path: str | Path) -> Workflow:
         p = WORKFLOWS_DIR / f"{path}.toml"
     wf = load(Workflow, p)
     wf = replace(wf, source=str(p))
+    if wf.solver.stabilisation_modulus == "tangent" and wf.element != "p1-p1s":
+        raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = 'tangent' stabilises the "
+                          f"p1-p1s element; element = {wf.element!r} has no such term")
     wf.subject_dir()
     wf.grasp_spec()
     return wf

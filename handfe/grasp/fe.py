@@ -154,6 +154,25 @@ class GraspProblem:
         if getattr(self, "kernel", None) is not None:
             self.kernel.refresh_parameters()
 
+    def update_stabilisation(self) -> float:
+        """Set the stabilisation's shear modulus of the tissue cells to their incremental one
+        at the current state (:meth:`OgdenP1Kernel.shear_modulus`, at least mu0) instead of the
+        small-strain mu0. With mu0 (0.6-1.2 kPa for the brief's sets) under pad pressures of
+        100-500 kPa the term beta h^2 / mu0 |grad p|^2 lets the tissue lose volume wherever
+        the pressure varies: cell J 0.1-0.3 under the pads of the coarse cylinder. The
+        modulus is lagged (a coefficient, not differentiated): call between solves, and
+        re-solve. Returns the largest relative change of a cell's modulus (all ranks)."""
+        if self.kernel is None:
+            raise ValueError("update_stabilisation needs the NumPy Ogden kernel (P1)")
+        cell_dof = self.mu0.function_space.dofmap.list.array
+        tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
+        new = self.kernel.shear_modulus()[tissue]
+        old = self.mu0.x.array[cell_dof[tissue]]
+        change = float(np.max(np.abs(new - old) / old, initial=0.0))
+        self.mu0.x.array[cell_dof[tissue]] = new
+        self.mu0.x.scatter_forward()
+        return self.comm.allreduce(change, op=MPI.MAX)
+
     def update(self, tangent: bool = True) -> None:
         """Refresh state-dependent coefficients (the NumPy Ogden kernel) from :attr:`w`; call
         before assembling the internal residual (``tangent=False`` is enough) or Jacobian."""

@@ -698,6 +698,7 @@ class GraspFE:
         bc_conv = self.bc.ubc.x.array.copy()  # bone displacement of the last converged state
         while done_frac < 1.0 - 1e-12:
             self.contact.apply_history()
+            self._lag_stabilisation()  # from the last converged state, before the predictor
             frac = min(1.0, done_frac + blend)
             self.bc.set(target, frac, prev)
             t_new = t_prev + frac * (t_target - t_prev)
@@ -786,6 +787,14 @@ class GraspFE:
         self.motions = target
         self.skel = skel
 
+    def _lag_stabilisation(self) -> None:
+        """``solver.stabilisation_modulus = "tangent"``: the p1-p1s stabilisation takes each
+        tissue cell's incremental shear modulus at the current (converged) state for the next
+        solve (:meth:`GraspProblem.update_stabilisation`); it enters the pressure equation
+        only, so torques and contact forces of a state do not depend on it directly."""
+        if self.wf.solver.stabilisation_modulus == "tangent":
+            self.problem.update_stabilisation()
+
     def _contact_data(self) -> dict[str, Any]:
         """The contact data a solve balances (multipliers, stick anchors, penalty) and whether
         the last step's return mapping is still due."""
@@ -856,6 +865,7 @@ class GraspFE:
         state and call ``undo`` (which restores the data). Says how it went."""
         w0 = self.problem.w.x.array.copy()
         ls = self.wf.solver.resolve_linesearch
+        self._lag_stabilisation()
         ok, its, reason = self.solver.solve(ls)
         if not ok:
             its0 = its
@@ -1161,6 +1171,7 @@ class GraspFE:
         if self.wf.solver.closing_atol_N <= self.solver.atol:
             return True
         w0 = self.problem.w.x.array.copy()
+        self._lag_stabilisation()
         r0 = self._residual_norm()
         ok, its, reason = self.solver.solve()
         if not ok:
