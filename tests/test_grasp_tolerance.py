@@ -37,6 +37,7 @@ class _Scene:
     _tighten = GraspFE._tighten
     _residual_norm = GraspFE._residual_norm
     _set_state = GraspFE._set_state
+    _lag_stabilisation = GraspFE._lag_stabilisation
 
 
 @pytest.mark.mpi
