@@ -567,6 +567,21 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
                         tangential_traction=tT, area_factor=area, lambda_n=lambda_n)
 
 
+def assemble_nodal(form) -> np.ndarray:
+    """Assemble a linear form and return its values at this rank's dofs, ghosts included
+    (owners' sums), laid out as the ``x.array`` of a Function on the form's space."""
+    from dolfinx.fem import petsc as fem_petsc
+    from petsc4py import PETSc
+
+    b = fem_petsc.assemble_vector(form)
+    b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+    b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
+    with b.localForm() as loc:
+        arr = loc.array.copy()
+    b.destroy()
+    return arr
+
+
 class UzawaUpdate:
     """Nodal Uzawa update ``lambda_n <- p = max(0, lambda_n - k_n g)`` (compiled once).
 
@@ -641,19 +656,9 @@ class UzawaUpdate:
         largest, in at most ``max_iterations`` assemblies over the contact facets; the penalty
         Constant is then ``k_new``. Returns the largest nodal-force mismatch left, relative to
         the largest nodal force (0 without the contact measure: the caller sets the penalty)."""
-        from dolfinx.fem import petsc as fem_petsc
         from mpi4py import MPI
-        from petsc4py import PETSc
 
-        def nodal(form) -> np.ndarray:
-            b = fem_petsc.assemble_vector(form)
-            b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-            b.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
-            with b.localForm() as loc:
-                arr = loc.array.copy()
-            b.destroy()
-            return arr
-
+        nodal = assemble_nodal
         d = self._dofs
         f_old = (nodal(self._force_forms[0])[d] if match_forces and self._force_forms
                  else None)

@@ -119,6 +119,10 @@ class OgdenP1Kernel:
         self._mu = self._mu_fn.x.array.reshape(-1, self._m)[self._blk]
         self._alpha = self._alpha_fn.x.array.reshape(-1, self._m)[self._blk]
 
+    def _deformation_gradient(self) -> np.ndarray:
+        """F of each cell (local and ghost), (n, 3, 3): constant on a P1 tet."""
+        return self._grad.eval(self.cells).reshape(-1, 3, 3) + np.eye(3)
+
     def shear_modulus(self) -> np.ndarray:
         """Incremental shear modulus of each cell (local and ghost, MPa) at the current state,
         averaged over the principal planes: (1/3) sum_i sum_p mu_p lbar_i^alpha_p (lbar the
@@ -126,8 +130,7 @@ class OgdenP1Kernel:
         Ogden (Abaqus-form) terms where the stretches coincide, sum mu_p = mu0 at rest, and
         grows with the stiffening: ~20 x mu0 for subcutaneous fat at 50 % uniaxial
         compression. Clipped below at mu0."""
-        G = self._grad.eval(self.cells).reshape(-1, 3, 3)
-        F = G + np.eye(3)
+        F = self._deformation_gradient()
         C = np.einsum("cki,ckj->cij", F, F)
         lam2 = np.clip(np.linalg.eigvalsh(C), 1e-12, None)
         J = np.sqrt(np.prod(lam2, axis=1))
@@ -139,8 +142,7 @@ class OgdenP1Kernel:
     def update(self, tangent: bool = True) -> None:
         """Stress (and the tangent if ``tangent``) from the current displacement, on ghost
         cells too (no scatter needed)."""
-        G = self._grad.eval(self.cells).reshape(-1, 3, 3)
-        F = G + np.eye(3)
+        F = self._deformation_gradient()
         P, A = ogden_dev_stress_tangent(F, self._mu, self._alpha, tangent=tangent)
         self.P.x.array.reshape(-1, 9)[self._pdof] = P.reshape(-1, 9)
         if A is not None:

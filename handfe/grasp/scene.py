@@ -1628,18 +1628,13 @@ class GraspFE:
         the object force of the equilibrium check). None for elements with mid-side nodes
         (the metrics then integrate the interpolated pressure)."""
         from dolfinx import fem
-        from dolfinx.fem import petsc as fem_petsc
-        from petsc4py import PETSc
+
+        from handfe.contact import assemble_nodal
 
         if self.problem.disc.degree != 1:
             return None
-        Rc = fem_petsc.assemble_vector(self.solver.L[1])
-        Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        Rc.ghostUpdate(addv=PETSc.InsertMode.INSERT, mode=PETSc.ScatterMode.FORWARD)
         w = fem.Function(self.problem.W)
-        with Rc.localForm() as loc:
-            w.x.array[:] = loc.array
-        Rc.destroy()
+        w.x.array[:] = assemble_nodal(self.solver.L[1])
         return w.sub(0).collapse()
 
     def metrics(self):
