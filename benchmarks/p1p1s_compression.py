@@ -9,7 +9,9 @@ times mu0 it lets the tissue lose volume where the pressure varies (docs/grasp.m
 ``--tangent`` sets mu to each cell's incremental shear modulus at the current state
 (:meth:`GraspProblem.update_stabilisation`, lagged: updated before each step and re-solved
 until it changes < 2 %). Prints CSV: element, stabilisation, n, press_mm, force_N,
-cell_J_min, cell_J_max, volume_ratio, seconds.
+contact_area_mm2, mean_pressure_kPa, cell_J_min, cell_J_max, volume_ratio, seconds;
+``--curve FILE`` writes force and area after every load step, to compare the elements' areas
+at equal force (the grasp's angles mode closes each digit to a force).
 
     .venv/bin/python benchmarks/p1p1s_compression.py --n 5,10 --press 3.0
     .venv/bin/python benchmarks/p1p1s_compression.py --n 5,10 --press 3.0 --tangent
@@ -24,8 +26,7 @@ import time
 from types import SimpleNamespace
 
 import numpy as np
-import ufl
-from dolfinx import fem, mesh
+from dolfinx import mesh
 from mpi4py import MPI
 
 from handfe.contact import Sphere
@@ -37,8 +38,11 @@ L_MM, H_MM, R_MM = 12.0, 5.0, 15.0
 
 
 def press_block(n: int, press_mm: float, element: str = "p1-p1s", tangent: bool = False,
-                steps: int = 20, comm=MPI.COMM_WORLD) -> dict[str, float]:
-    """Press the block by ``press_mm``; the contact force (N) and cell J range at the end."""
+                steps: int = 20, comm=MPI.COMM_WORLD,
+                curve: list[dict[str, float]] | None = None) -> dict[str, float]:
+    """Press the block by ``press_mm``; the contact force (N), area (mm^2), mean pressure
+    (kPa) and cell J range at the end. ``curve``, if given, gets press, force and area after
+    every load step (an element's area at a given force, not only at a given press)."""
     t0 = time.perf_counter()
     msh = mesh.create_box(comm, [np.zeros(3), np.array([L_MM, L_MM, H_MM])],
                           [n, n, max(2, n * 5 // 12)], mesh.CellType.tetrahedron)
@@ -75,23 +79,22 @@ def press_block(n: int, press_mm: float, element: str = "p1-p1s", tangent: bool 
         if tangent:
             prob.update_stabilisation()
         solve(f"press {d:.3f} mm")
+        if curve is not None:
+            m = contact.metrics()
+            curve.append({"press_mm": float(d), "force_N": m.normal_force_N,
+                          "contact_area_mm2": m.contact_area_mm2,
+                          "mean_pressure_kPa": m.mean_pressure_kPa})
     for _ in range(10 if tangent else 0):
         change = prob.update_stabilisation()
         solve("stabilisation update")
         if change < 0.02:
             break
-    u = prob.w.sub(0).collapse()
-    J = ufl.det(ufl.Identity(3) + ufl.grad(u))
-    Q0 = fem.FunctionSpace(msh, ("DG", 0))
-    Jc = fem.Function(Q0)
-    Jc.interpolate(fem.Expression(J, Q0.element.interpolation_points()))
-    Jl = Jc.x.array[:nc]
-    vol0 = comm.allreduce(fem.assemble_scalar(fem.form(1.0 * ufl.dx(domain=msh))), op=MPI.SUM)
-    vol = comm.allreduce(fem.assemble_scalar(fem.form(J * ufl.dx(domain=msh))), op=MPI.SUM)
-    return {"force_N": contact.metrics().normal_force_N,
-            "cell_J_min": comm.allreduce(float(Jl.min()), op=MPI.MIN),
-            "cell_J_max": comm.allreduce(float(Jl.max()), op=MPI.MAX),
-            "volume_ratio": vol / vol0, "seconds": time.perf_counter() - t0}
+    vol = prob.tissue_volume()
+    m = contact.metrics()
+    return {"force_N": m.normal_force_N, "contact_area_mm2": m.contact_area_mm2,
+            "mean_pressure_kPa": m.mean_pressure_kPa,
+            "cell_J_min": vol["min_cell_J"], "cell_J_max": vol["max_cell_J"],
+            "volume_ratio": vol["volume_ratio"], "seconds": time.perf_counter() - t0}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,18 +105,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tangent", action="store_true",
                     help="p1-p1s: stabilise with the incremental shear modulus, not mu0")
     ap.add_argument("--steps", type=int, default=20, help="load steps")
+    ap.add_argument("--curve", metavar="CSV",
+                    help="also write press_mm, force_N, contact_area_mm2, mean_pressure_kPa "
+                    "after every load step (one block of rows per n) to this file")
     a = ap.parse_args(argv)
     comm = MPI.COMM_WORLD
+    stab = "-" if a.element != "p1-p1s" else ("tangent" if a.tangent else "mu0")
     if comm.rank == 0:
-        print("element,stabilisation,n,press_mm,force_N,cell_J_min,cell_J_max,volume_ratio,"
-              "seconds")
+        print("element,stabilisation,n,press_mm,force_N,contact_area_mm2,mean_pressure_kPa,"
+              "cell_J_min,cell_J_max,volume_ratio,seconds")
+    rows: list[str] = []
     for n in (int(x) for x in a.n.split(",")):
-        r = press_block(n, a.press, a.element, a.tangent, a.steps)
+        curve: list[dict[str, float]] = []
+        r = press_block(n, a.press, a.element, a.tangent, a.steps, curve=curve)
+        rows += [f"{a.element},{stab},{n},{c['press_mm']:.4f},{c['force_N']:.5f},"
+                 f"{c['contact_area_mm2']:.3f},{c['mean_pressure_kPa']:.2f}" for c in curve]
         if comm.rank == 0:
-            stab = "-" if a.element != "p1-p1s" else ("tangent" if a.tangent else "mu0")
-            print(f"{a.element},{stab},{n},{a.press},{r['force_N']:.4f},{r['cell_J_min']:.3f},"
-                  f"{r['cell_J_max']:.3f},{r['volume_ratio']:.4f},{r['seconds']:.1f}",
-                  flush=True)
+            print(f"{a.element},{stab},{n},{a.press},{r['force_N']:.4f},"
+                  f"{r['contact_area_mm2']:.2f},{r['mean_pressure_kPa']:.1f},"
+                  f"{r['cell_J_min']:.3f},{r['cell_J_max']:.3f},{r['volume_ratio']:.4f},"
+                  f"{r['seconds']:.1f}", flush=True)
+    if a.curve and comm.rank == 0:
+        with open(a.curve, "w") as f:
+            f.write("element,stabilisation,n,press_mm,force_N,contact_area_mm2,"
+                    "mean_pressure_kPa\n" + "".join(r + "\n" for r in rows))
     return 0
 
 

@@ -58,8 +58,58 @@ def test_tangent_stabilisation_takes_the_cells_incremental_shear_modulus():
     u.interpolate(lambda x: (s[:, None] - 1.0) * x)
     prob.w.sub(0).interpolate(u)
     prob.w.x.scatter_forward()
+    lag = prob.stabilisation_lag()  # what an update would change, without changing it
+    np.testing.assert_allclose(prob.mu0.x.array, mu0, rtol=1e-12)
     change = prob.update_stabilisation()
     expect = sum(m * np.sum(s ** a) for m, a in zip(fat.mu_MPa, fat.alpha, strict=True)) / 3.0
     assert expect > 5.0 * mu0
     assert change == pytest.approx(expect / mu0 - 1.0, rel=1e-9)
+    assert lag == pytest.approx(change, rel=1e-12)
     np.testing.assert_allclose(prob.mu0.x.array, expect, rtol=1e-9)
+    assert prob.stabilisation_lag() == pytest.approx(0.0, abs=1e-12)  # a fixed point now
+
+
+def _block_problem():
+    from types import SimpleNamespace
+
+    import numpy as np
+    from dolfinx import mesh
+    from mpi4py import MPI
+
+    from handfe.grasp.fe import SKIN, SUBCUT, GraspProblem
+    from handfe.materials import Ogden
+
+    msh = mesh.create_box(MPI.COMM_WORLD, [np.zeros(3), np.array([4.0, 4.0, 2.0])], [2, 2, 1],
+                          mesh.CellType.tetrahedron)
+    nc = msh.topology.index_map(3).size_local
+    tags = np.where(np.arange(nc) % 2 == 0, SKIN, SUBCUT).astype(np.int32)
+    ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), tags)
+    ft = mesh.meshtags(msh, 2, np.zeros(0, np.int32), np.zeros(0, np.int32))
+    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={})
+    return GraspProblem(model, Ogden.skin(nu=0.499), Ogden.subcutaneous(nu=0.499),
+                        element="p1-p1s")
+
+
+@pytest.mark.mpi
+def test_tissue_volume_reports_cell_J_and_the_volume_ratio():
+    """``GraspProblem.tissue_volume`` (summary.json ``tissue_volume``): J = 1 at rest; a
+    uniform 20 % compression along z with no lateral expansion (J = 0.8 in every cell) is
+    seen as such by every cell, on 1 and 2 ranks."""
+    import numpy as np
+    from dolfinx import fem
+
+    prob = _block_problem()
+    rest = prob.tissue_volume()
+    assert rest["min_cell_J"] == pytest.approx(1.0, abs=1e-12)
+    assert rest["max_cell_J"] == pytest.approx(1.0, abs=1e-12)
+    assert rest["volume_ratio"] == pytest.approx(1.0, abs=1e-12)
+    assert rest["cells_J_below_0.9"] == 0.0
+    u = fem.Function(prob.W.sub(0).collapse()[0])
+    u.interpolate(lambda x: np.vstack([0.0 * x[0], 0.0 * x[1], -0.2 * x[2]]))
+    prob.w.sub(0).interpolate(u)
+    prob.w.x.scatter_forward()
+    v = prob.tissue_volume()
+    assert v["min_cell_J"] == pytest.approx(0.8, rel=1e-12)
+    assert v["max_cell_J"] == pytest.approx(0.8, rel=1e-12)
+    assert v["volume_ratio"] == pytest.approx(0.8, rel=1e-12)
+    assert v["cells_J_below_0.9"] == 1.0

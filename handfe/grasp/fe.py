@@ -162,16 +162,54 @@ class GraspProblem:
         the pressure varies: cell J 0.1-0.3 under the pads of the coarse cylinder. The
         modulus is lagged (a coefficient, not differentiated): call between solves, and
         re-solve. Returns the largest relative change of a cell's modulus (all ranks)."""
+        return self._stabilisation_modulus(apply=True)
+
+    def stabilisation_lag(self) -> float:
+        """How far the lagged stabilisation modulus is from the current state's: the largest
+        relative change of a tissue cell's modulus that :meth:`update_stabilisation` would
+        make now (all ranks), without making it. Near 0 at a fixed point."""
+        return self._stabilisation_modulus(apply=False)
+
+    def _stabilisation_modulus(self, apply: bool) -> float:
         if self.kernel is None:
-            raise ValueError("update_stabilisation needs the NumPy Ogden kernel (P1)")
+            raise ValueError("the tangent stabilisation needs the NumPy Ogden kernel (P1)")
         cell_dof = self.mu0.function_space.dofmap.list.array
         tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
         new = self.kernel.shear_modulus()[tissue]
         old = self.mu0.x.array[cell_dof[tissue]]
         change = float(np.max(np.abs(new - old) / old, initial=0.0))
-        self.mu0.x.array[cell_dof[tissue]] = new
-        self.mu0.x.scatter_forward()
+        if apply:
+            self.mu0.x.array[cell_dof[tissue]] = new
+            self.mu0.x.scatter_forward()
         return self.comm.allreduce(change, op=MPI.MAX)
+
+    def tissue_volume(self) -> dict[str, float]:
+        """Volume change of the skin and subcutaneous tissue: J = det F of each owned cell (at
+        its centre; exact on P1 tets), the smallest and largest J, the share of cells with
+        J < 0.9 and the deformed / undeformed tissue volume. Near-incompressible tissue
+        (nu 0.499) keeps J ~ 1; cells far from 1 mean the element lets it lose volume
+        (p1-p1s stabilised with mu0 under pad pressures: cell J 0.1-0.3 under the pads,
+        docs/grasp.md)."""
+        if getattr(self, "_J", None) is None:
+            D0 = fem.FunctionSpace(self.mesh, ("DG", 0))
+            Jf = ufl.det(ufl.Identity(3) + ufl.grad(self.u))
+            tissue_dx = self.dx((SKIN, SUBCUT))
+            self._J = (fem.Function(D0), fem.Expression(Jf, D0.element.interpolation_points()),
+                       fem.form(1.0 * tissue_dx), fem.form(Jf * tissue_dx))
+        Jc, expr, f0, f1 = self._J
+        Jc.interpolate(expr)
+        nloc = self.mesh.topology.index_map(3).size_local
+        tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
+        J = Jc.x.array[Jc.function_space.dofmap.list.array[tissue[tissue < nloc]]]
+        comm = self.comm
+        n = comm.allreduce(len(J), op=MPI.SUM)
+        low = comm.allreduce(int(np.count_nonzero(J < 0.9)), op=MPI.SUM)
+        vol0 = comm.allreduce(fem.assemble_scalar(f0), op=MPI.SUM)
+        vol = comm.allreduce(fem.assemble_scalar(f1), op=MPI.SUM)
+        return {"min_cell_J": comm.allreduce(float(J.min(initial=np.inf)), op=MPI.MIN),
+                "max_cell_J": comm.allreduce(float(J.max(initial=-np.inf)), op=MPI.MAX),
+                "cells_J_below_0.9": low / max(n, 1),
+                "volume_ratio": vol / vol0 if vol0 > 0.0 else float("nan")}
 
     def update(self, tangent: bool = True) -> None:
         """Refresh state-dependent coefficients (the NumPy Ogden kernel) from :attr:`w`; call
