@@ -10,7 +10,8 @@ Run a grasp workflow (workflows/*.toml: subject + grasp + loading + mesh level +
 The hand is meshed in the subject's measured grasp posture (glove angles, or the grasp's pose
 file) with only the participating digits; the rigid object (grasps/*.toml) is placed in the grasp
 cavity just short of contact. Bones are rigid and move as boundary conditions; skin and
-subcutaneous tissue are Ogden N=3 (near-incompressible, P1 displacement + DG0 pressure);
+subcutaneous tissue are Ogden N=3 (near-incompressible; element p1-p1s: P1 displacement +
+stabilised continuous P1 pressure, solver.stabilisation_modulus "initial" or "tangent");
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:
