@@ -1688,6 +1688,10 @@ class GraspFE:
                 "stalled_digits": self.stalled,
                 "digit_force_N": getattr(self, "digit_force_N", {}),
                 "penalty_N_per_mm3": float(self.contact.k_n.value),
+                # J of the tissue cells: how much volume the element lets the tissue lose
+                "tissue_volume": self.problem.tissue_volume(),
+                **({"stabilisation_lag": self.problem.stabilisation_lag()}
+                   if self.wf.solver.stabilisation_modulus == "tangent" else {}),
                 "steps": self.steps}
 
     def write_fields(self, path: Path) -> None:
