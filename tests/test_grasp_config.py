@@ -603,6 +603,11 @@ class _FakeMuscles:
 
         return GraspFE._grip_stall(self)
 
+    def _friction_history_per_load(self):
+        from handfe.grasp.scene import GraspFE
+
+        return GraspFE._friction_history_per_load(self)
+
     def _scale_stall_to_grip(self):
         from handfe.grasp.scene import GraspFE
 
@@ -664,6 +669,45 @@ def test_muscles_mode_accepts_fe_stalls_relative_to_the_grip(monkeypatch):
     for tol, grip in seen:
         assert tol == pytest.approx(max(1e-4, 1e-4 * grip))
     assert max(g for _, g in seen) > 10.0  # N: the scaled tolerance was the one in force
+
+
+@pytest.mark.parametrize("history", ["load", "iteration"])
+def test_muscles_mode_friction_history_per_load_is_held_inside_each_balance(monkeypatch,
+                                                                             history):
+    # solver.muscle_friction_history = "load": every FE move of a load's torque Newton runs
+    # with the return mapping held (_go_to then leaves it undone), and leaving the balance
+    # marks the return mapping of the balanced state due, once per load; "iteration" holds
+    # nothing (each accepted solve marks its own, in _go_to)
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeMuscles(np.array([900.0, 400.0]))
+    fake.wf = SimpleNamespace(solver=replace(fake.wf.solver, muscle_friction_history=history))
+    _exact_tangent(monkeypatch, fake)
+    marked = []
+    fake.contact = SimpleNamespace(uzawa=None, u_ref=None,
+                                   on_step=lambda t, r, defer=False: marked.append(defer))
+    fake._hold_history = False
+    held = []
+
+    def go_to(theta, *, label, max_cuts=6):
+        held.append(fake._hold_history)
+        fake.theta = np.array(theta, dtype=float)
+
+    fake._go_to = go_to
+    balances = []  # (the return mappings marked before it) per torque balance
+    fake._balance = lambda rtol, *, label: (balances.append(len(marked)),
+                                            GraspFE._balance(fake, rtol, label=label))[1]
+    GraspFE.solve_muscles(fake)
+    assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+    assert held and all(held) == (history == "load") and any(held) == (history == "load")
+    assert not fake._hold_history
+    assert len(balances) == 5  # four muscle loads, then the balance after the Uzawa phase
+    assert marked == ([True] * len(balances) if history == "load" else [])
+    if history == "load":
+        assert balances == list(range(len(balances)))  # one mark as each balance ends
 
 
 def test_muscles_mode_converges_when_the_tissue_gives_less_than_its_tangent(monkeypatch):

@@ -109,6 +109,14 @@ class SolverSpec:
     # kink) at <= muscle_stall_rtol x the grip (N) is accepted, as a stall <= 1e-4 N is in
     # the closing; 0 = the closing's absolute 1e-4 N only
     muscle_stall_rtol: float = field(default=1e-4, metadata=bounds(0.0, 1e-2))
+    # muscles mode: when the friction history (Coulomb return mapping: stick anchors and
+    # tangential multipliers) is updated. "load": once per balanced muscle load - the torque
+    # Newton's iterations are iterations of one load step, so slip is measured from the
+    # anchors of the last balanced load and the condensed FE tangent is the exact derivative
+    # of the torques; "iteration": after every torque iteration's FE solve (before 4 Dec
+    # 2026), which changes the contact data between iterations (docs/grasp.md)
+    muscle_friction_history: str = field(default="iteration",
+                                         metadata=choices("load", "iteration"))
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True
