@@ -1088,3 +1088,44 @@ def test_friction_use_names_a_digit_off_the_object():
     msg = GraspFE._friction_use(fake)
     assert msg == ("contact forces (mu = 0.74): thumb 0 N (off the object), "
                    "index 5.00 N, tangential/normal 0.72 (at the friction limit)")
+
+
+@pytest.mark.parametrize("solved", [True, False])
+def test_pressure_following_penalty_re_solves_after_stiffening(solved):
+    # muscle_penalty_follows_pressure: RigidContact.stiffen keeps the nodal forces only to
+    # ~1e-2, so the state is re-solved with the stiffer penalty at once (a final phase whose
+    # Uzawa updates all failed reported the unsolved state: 2.8 N out of balance); a failed
+    # re-solve gives the contact data back (the state is restored by _resolve)
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    from handfe.grasp.config import SolverSpec
+    from handfe.grasp.scene import GraspFE
+
+    k = SimpleNamespace(value=1.0)
+
+    def stiffen(k_new):
+        k.value = k_new
+        return 1e-2
+
+    fake = SimpleNamespace(
+        wf=SimpleNamespace(solver=replace(SolverSpec(), muscle_penalty_follows_pressure=True,
+                                          step_penetration_mm=0.1)),
+        contact=SimpleNamespace(uzawa=SimpleNamespace(peak_pressure=lambda: 0.5), k_n=k,
+                                adaptive_penalty=10.0, h_mm=4.0, stiffen=stiffen),
+        log=[], resolves=[])
+    fake.say = fake.log.append
+    fake._contact_data = lambda: {"k": k.value}
+    fake._set_contact_data = lambda d: setattr(k, "value", d["k"])
+
+    def resolve(what, undo):
+        fake.resolves.append(what)
+        if not solved:
+            undo()
+        return solved
+
+    fake._resolve = resolve
+    GraspFE._penalty_to_pressure(fake)
+    assert len(fake.resolves) == 1 and "stiffer penalty" in fake.resolves[0]
+    # 2x cap: the target 0.5 MPa / 0.1 mm = 5 N/mm3 is more than twice the penalty
+    assert k.value == (2.0 if solved else 1.0)

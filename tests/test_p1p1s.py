@@ -58,15 +58,11 @@ def test_tangent_stabilisation_takes_the_cells_incremental_shear_modulus():
     u.interpolate(lambda x: (s[:, None] - 1.0) * x)
     prob.w.sub(0).interpolate(u)
     prob.w.x.scatter_forward()
-    lag = prob.stabilisation_lag()  # what an update would change, without changing it
-    np.testing.assert_allclose(prob.mu0.x.array, mu0, rtol=1e-12)
     change = prob.update_stabilisation()
     expect = sum(m * np.sum(s ** a) for m, a in zip(fat.mu_MPa, fat.alpha, strict=True)) / 3.0
     assert expect > 5.0 * mu0
     assert change == pytest.approx(expect / mu0 - 1.0, rel=1e-9)
-    assert lag == pytest.approx(change, rel=1e-12)
     np.testing.assert_allclose(prob.mu0.x.array, expect, rtol=1e-9)
-    assert prob.stabilisation_lag() == pytest.approx(0.0, abs=1e-12)  # a fixed point now
 
 
 def _block_problem():

@@ -162,25 +162,15 @@ class GraspProblem:
         the pressure varies: cell J 0.1-0.3 under the pads of the coarse cylinder. The
         modulus is lagged (a coefficient, not differentiated): call between solves, and
         re-solve. Returns the largest relative change of a cell's modulus (all ranks)."""
-        return self._stabilisation_modulus(apply=True)
-
-    def stabilisation_lag(self) -> float:
-        """How far the lagged stabilisation modulus is from the current state's: the largest
-        relative change of a tissue cell's modulus that :meth:`update_stabilisation` would
-        make now (all ranks), without making it. Near 0 at a fixed point."""
-        return self._stabilisation_modulus(apply=False)
-
-    def _stabilisation_modulus(self, apply: bool) -> float:
         if self.kernel is None:
-            raise ValueError("the tangent stabilisation needs the NumPy Ogden kernel (P1)")
+            raise ValueError("update_stabilisation needs the NumPy Ogden kernel (P1)")
         cell_dof = self.mu0.function_space.dofmap.list.array
         tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
         new = self.kernel.shear_modulus()[tissue]
         old = self.mu0.x.array[cell_dof[tissue]]
         change = float(np.max(np.abs(new - old) / old, initial=0.0))
-        if apply:
-            self.mu0.x.array[cell_dof[tissue]] = new
-            self.mu0.x.scatter_forward()
+        self.mu0.x.array[cell_dof[tissue]] = new
+        self.mu0.x.scatter_forward()
         return self.comm.allreduce(change, op=MPI.MAX)
 
     def tissue_volume(self) -> dict[str, float]:
