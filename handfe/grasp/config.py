@@ -110,13 +110,14 @@ class SolverSpec:
     # the closing; 0 = the closing's absolute 1e-4 N only
     muscle_stall_rtol: float = field(default=1e-4, metadata=bounds(0.0, 1e-2))
     # muscles mode: when the friction history (Coulomb return mapping: stick anchors and
-    # tangential multipliers) is updated. "load": once per balanced muscle load - the torque
-    # Newton's iterations are iterations of one load step, so slip is measured from the
-    # anchors of the last balanced load and the condensed FE tangent is the exact derivative
-    # of the torques; "iteration": after every torque iteration's FE solve (before 4 Dec
-    # 2026), which changes the contact data between iterations (docs/grasp.md)
-    muscle_friction_history: str = field(default="iteration",
-                                         metadata=choices("load", "iteration"))
+    # tangential multipliers) is updated. "load" (default since 4 Dec 2026): once per
+    # balanced muscle load - the torque Newton's iterations are iterations of one load step,
+    # so slip is measured from the anchors of the last balanced load and the condensed FE
+    # tangent is the derivative of what the next iteration sees; the coarse cylinder then
+    # balanced the full EMG load to 4.8e-4 in 11 torque iterations. "iteration": after
+    # every torque iteration's FE solve (before): the contact data changed between
+    # iterations and the same run chattered at 3e-3 - 7e-3 (docs/grasp.md)
+    muscle_friction_history: str = field(default="load", metadata=choices("load", "iteration"))
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

@@ -1449,7 +1449,8 @@ class GraspFE:
             yield
         finally:
             self._hold_history = False
-            self.contact.on_step(1.0, None, defer=True)
+            if self.contact.u_ref is not None:  # frictionless: no history
+                self.contact.on_step(1.0, None, defer=True)
 
     @contextlib.contextmanager
     def _grip_stall(self):
