@@ -580,10 +580,10 @@ class _FakeMuscles:
     def _friction_use(self):
         return "contact forces: -"
 
-    def _penalty_to_pressure(self):
+    def _penalty_to_pressure(self, **kw):
         from handfe.grasp.scene import GraspFE
 
-        GraspFE._penalty_to_pressure(self)
+        GraspFE._penalty_to_pressure(self, **kw)
 
     def digit_forces(self):
         return {"index": float(-self._tissue(self.theta).sum() / 40.0)}
@@ -817,16 +817,20 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
     runs = [fake(True, 1.5), fake(True, 0.5),  # the second at most doubled per call
             fake(True, 2.5), fake(False, 0.5)]  # already stiffer; off
     for f in runs:
-        GraspFE._penalty_to_pressure(f)
+        GraspFE._penalty_to_pressure(f, resolve=True)
     assert calls == [pytest.approx(2.0), pytest.approx(1.0)]
-    # stiffen keeps the nodal forces to ~1e-2 only: the state is re-solved with the stiffer
-    # penalty at once (a final phase whose Uzawa updates all failed had reported the unsolved
-    # state, 2.8 N out of balance); a failed re-solve gives the contact data back
+    # stiffen keeps the nodal forces to ~1e-2 only: in the final phase the state is re-solved
+    # with the stiffer penalty at once (one whose Uzawa updates all failed had reported the
+    # unsolved state, 2.8 N out of balance); a failed re-solve gives the contact data back
     assert [sum("stiffer penalty" in m for m in f.log) for f in runs] == [1, 1, 0, 0]
     assert [f.contact.k_n.value for f in runs[:2]] == [pytest.approx(2.0), pytest.approx(1.0)]
     f = fake(True, 1.5, resolve_fails=True)
-    GraspFE._penalty_to_pressure(f)
+    GraspFE._penalty_to_pressure(f, resolve=True)
     assert f.contact.k_n.value == 1.5
+    f = fake(True, 1.5)  # before a muscle load: the torque step's FE solve does it
+    GraspFE._penalty_to_pressure(f)
+    assert f.contact.k_n.value == pytest.approx(2.0)
+    assert not any("stiffer penalty" in m for m in f.log)
 
 
 def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(monkeypatch):

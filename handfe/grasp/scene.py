@@ -1364,7 +1364,7 @@ class GraspFE:
                     raise SolverError(f"muscle load {lam:.3g} (from {done:.3g}): {why}",
                                       load_step=len(self.steps) + 1, load_factor=done)
                 self.say(f"    muscle load {lam:.3g} failed ({why}): step halved")
-            self._penalty_to_pressure()
+            self._penalty_to_pressure(resolve=True)
             balanced = self._snapshot()  # a failed round reports this, not an unbalanced state
             for _ in range(3):
                 with self._grip_stall():
@@ -1394,7 +1394,7 @@ class GraspFE:
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
 
-    def _penalty_to_pressure(self) -> None:
+    def _penalty_to_pressure(self, *, resolve: bool = False) -> None:
         """``solver.muscle_penalty_follows_pressure``: before a muscle load (and the final Uzawa
         phase) raise k_n towards the larger of adaptive_penalty x the pads' peak pressure /
         facet size and peak pressure / step_penetration_mm (the first alone allows 0.4 mm of
@@ -1402,7 +1402,12 @@ class GraspFE:
         tractions of the balanced state (:meth:`RigidContact.stiffen`). Without it k_n stays
         the closing's (~1 N per digit) while the EMG load presses the pads 20-30x harder, and
         they sink in by mm: the coarse cylinder reached the full load 2.1 mm deep, and each
-        Uzawa round at full load then moved the pads so far that a digit lifted off."""
+        Uzawa round at full load then moved the pads so far that a digit lifted off.
+
+        ``resolve`` (the final phase): re-solve with the stiffer penalty at once, giving the
+        data back if that fails. Before a muscle load the first torque step's FE solve does
+        it, moving the bones too: a re-solve at the fixed posture failed there (coarse
+        cylinder, 1.12 -> 2.23 N/mm3 at load 0.625) and kept the penalty from growing."""
         c = self.contact
         if not (self.wf.solver.muscle_penalty_follows_pressure and c.uzawa is not None
                 and c.adaptive_penalty is not None):
@@ -1418,12 +1423,13 @@ class GraspFE:
             off = c.stiffen(target)
             self.say(f"    penalty {k:.3g} -> {target:.3g} N/mm3 (peak pressure {p:.3g} MPa; "
                      f"nodal forces kept to {off:.1e})")
-            # the nodal forces are kept to ~1e-2 only (a curved object): re-solve, so that a
-            # state reported without a further solve balances its contact data (the coarse
-            # cylinder's final phase, whose Uzawa updates all failed, ended 2.8 N out of
-            # balance: object force vs support reactions 0.22 relative)
-            self._resolve("re-solve with the stiffer penalty",
-                          lambda: self._set_contact_data(before))
+            if resolve:
+                # the nodal forces are kept to ~1e-2 only (a curved object): re-solve, so that
+                # a state reported without a further solve balances its contact data (the
+                # coarse cylinder's final phase, whose Uzawa updates all failed, ended 2.8 N
+                # out of balance: object force vs support reactions 0.22 relative)
+                self._resolve("re-solve with the stiffer penalty",
+                              lambda: self._set_contact_data(before))
 
     def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """:meth:`_balance` with the FE stall tolerance scaled to the grip (restored after)
