@@ -15,11 +15,12 @@ stabilised continuous P1 pressure, solver.stabilisation_modulus "initial" or "ta
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:
-  muscles  EXPERIMENTAL, no run at the EMG forces has finished: the coarse cylinder
-           balances the full EMG load with its pads 2.1 mm deep on the penalty, then its
-           final Uzawa phase fails; the pinch stalls at 41 % of the load, the index curled
-           off its friction cone; a run that gives up writes the last balanced load's
-           results, marked partial; docs/grasp.md.
+  muscles  EXPERIMENTAL, no run at the EMG forces has finished at the 0.01 mm contact:
+           the coarse cylinder balances the full EMG load to a relative torque residual
+           of ~5e-4, but on a penalty contact 1.2-1.3 mm deep, and its final Uzawa phase
+           fails; the pinch stalls at 41 % of the load, the index curled off its friction
+           cone; a run that gives up writes the last balanced load's results, marked
+           partial; docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
