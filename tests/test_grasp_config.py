@@ -608,6 +608,11 @@ class _FakeMuscles:
 
         return GraspFE._friction_history_per_load(self)
 
+    def _set_limits(self, g):
+        from handfe.grasp.scene import GraspFE
+
+        GraspFE._set_limits(self, g)
+
     def _contact_data(self):
         return {"k": self.contact.k_n.value}
 
@@ -777,6 +782,7 @@ def test_muscles_mode_failed_final_phase_reports_the_balanced_full_load(monkeypa
 
         def _go_to(self, theta, *, label, max_cuts=6):
             if self.final:
+                self.at_limit = np.ones(2, dtype=bool)  # end stops of a moved state
                 raise SolverError(f"{label}: Newton failed", load_step=1)
             super()._go_to(theta, label=label)
 
@@ -787,6 +793,7 @@ def test_muscles_mode_failed_final_phase_reports_the_balanced_full_load(monkeypa
     assert fake.muscle_load == 1.0
     assert np.all(fake.torque["relative"] <= 10 * fake.wf.solver.torque_rtol)
     assert np.array_equal(fake.torque["muscle"], [900.0, 400.0])
+    assert not fake.at_limit.any()  # the reported state's end stops, not the moved one's
 
 
 def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():

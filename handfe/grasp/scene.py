@@ -1064,7 +1064,9 @@ class GraspFE:
                 "ubc": self.bc.ubc.x.array.copy(),
                 "dw": self._dw, "dbc": self._dbc,
                 "translation": np.array(c.translation.value, dtype=float),
-                "contact": self._contact_data()}
+                "contact": self._contact_data(),
+                # the lagged stabilisation modulus the state was solved with ("tangent")
+                "mu0": self.problem.mu0.x.array.copy()}
         return snap
 
     def _restore(self, snap: dict[str, Any]) -> None:
@@ -1075,6 +1077,7 @@ class GraspFE:
         c.translation.value = snap["translation"]
         self._dw, self._dbc = snap["dw"], snap["dbc"]
         self._set_contact_data(snap["contact"])
+        self.problem.mu0.x.array[:] = snap["mu0"]
 
     def _closing_increment(self, last: tuple[float, float] | None, closed: float,
                            force: float) -> float:
@@ -1387,6 +1390,9 @@ class GraspFE:
                 self.tau_muscle = tau_hold + self.muscle_load * (tau_m - tau_hold)
                 self.force_target = (1.0 - self.muscle_load) * f_hold
                 self.torque = self.torques()
+                # the end stops of that state, not of the failed balance after it (the coarse
+                # cylinder's thumb MCP, at its limit, was reported with a residual of 0.31)
+                self._set_limits(self.torque["residual"])
                 self.digit_force_N = self.digit_forces()
             raise
         finally:
@@ -1484,6 +1490,12 @@ class GraspFE:
         grip = float(sum(self.digit_forces().values()))
         self.solver.stall_atol = max(self._stall_base, self.wf.solver.muscle_stall_rtol * grip)
 
+    def _set_limits(self, g: np.ndarray) -> None:
+        """Joints held at a limit by the torque residual ``g`` (N mm) pushing past it: end
+        stops, whose residual the balance does not count."""
+        self.at_limit = ((self.theta >= self.kin.hi - 1e-9) & (g > 0)) | (
+            (self.theta <= self.kin.lo + 1e-9) & (g < 0))
+
     def _balance(self, rtol: float, *, label: str) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
         until applied (``tau_muscle``) + ligament + tissue torque is <= ``rtol`` (relative) at
@@ -1518,8 +1530,7 @@ class GraspFE:
             self.outer_iterations += 1
             tq = self.torques()
             g = tq["residual"]
-            self.at_limit = ((self.theta >= self.kin.hi - 1e-9) & (g > 0)) | (
-                (self.theta <= self.kin.lo + 1e-9) & (g < 0))
+            self._set_limits(g)
             free = ~self.at_limit
             relv = np.where(free, tq["relative"], 0.0)
             rel = float(relv.max(initial=0.0))
