@@ -27,12 +27,15 @@ from handfe.kinematics import Pose
 from handfe.paths import REPO_ROOT
 
 
-@pytest.mark.parametrize("name", ["cylindrical", "spherical", "precision"])
+@pytest.mark.parametrize("name", ["cylindrical", "spherical", "precision",
+                                  "cylindrical_muscles"])
 def test_shipped_workflows_load(name):
     wf = load_workflow(REPO_ROOT / "workflows" / f"{name}.toml")
     g = wf.grasp_spec()
-    assert g.name == name and 0.0 < g.friction < 1.0
+    assert g.name == name.removesuffix("_muscles") and 0.0 < g.friction < 1.0
     assert wf.subject_dir().name == "S01"
+    if name.endswith("_muscles"):  # the recipe of the measured muscle-driven runs
+        assert wf.loading == "muscles" and wf.solver.muscle_friction_history == "load"
 
 
 def _write(tmp_path: Path, text: str, name: str = "wf.toml") -> Path:

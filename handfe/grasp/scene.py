@@ -394,6 +394,10 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         checkpoint("done")
         say(f"done in {summary['wall_s']:.1f} s: grip force {summary['grip_force_N']:.1f} N, "
             f"max penetration {summary['max_penetration_mm']:.4f} mm")
+        if summary["max_penetration_mm"] > wf.solver.penetration_tol_mm:
+            say(f"WARNING: the contact ends {summary['max_penetration_mm']:.3g} mm deep, above "
+                f"its {wf.solver.penetration_tol_mm:g} mm target: contact areas and pressures "
+                "are those of the penalty, not of hard contact")
         return GraspResult(regs, summary, out, tips)
     except (SolverError, InputError, ConfigError) as exc:
         summary["failed_stage"] = stage
