@@ -843,6 +843,53 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
     assert not any("stiffer penalty" in m for m in f.log)
 
 
+def test_muscles_mode_retries_a_failed_load_with_the_last_balanced_penalty(monkeypatch):
+    # the pressure-following penalty doubles before each load; a load that fails is retried
+    # (halved) with the penalty of the last balanced load, not doubled again (the coarse
+    # cylinder with muscle_uzawa failed at 1e-4 of each retry's first step after 2.52 -> 5.03)
+    import dataclasses
+    from types import SimpleNamespace
+
+    from handfe.grasp.scene import GraspFE
+
+    class Stiffening(_FakeMuscles):
+        def __init__(self, tau):
+            super().__init__(tau)
+            self.wf = SimpleNamespace(solver=dataclasses.replace(
+                self.wf.solver, muscle_penalty_follows_pressure=True))
+            kn = SimpleNamespace(value=1.0)
+
+            def stiffen(k_new):
+                kn.value = k_new
+                return 0.0
+
+            self.contact = SimpleNamespace(
+                uzawa=SimpleNamespace(peak_pressure=lambda: 100.0, penetration=lambda: 0.0),
+                u_ref=None, adaptive_penalty=10.0, h_mm=2.0, k_n=kn, stiffen=stiffen)
+            self.tried: list[tuple[str, float]] = []
+            self.failed = False
+
+        def _snapshot(self):
+            return self.theta.copy(), self.contact.k_n.value
+
+        def _restore(self, snap):
+            self.theta, self.contact.k_n.value = snap[0].copy(), snap[1]
+
+        def _balance_torques(self, rtol, *, label):
+            self.tried.append((label, self.contact.k_n.value))
+            if label == "muscle load 0.5" and not self.failed:
+                self.failed = True
+                return False, "FE solve failed"
+            return super()._balance_torques(rtol, label=label)
+
+    fake = Stiffening([900.0, 400.0])
+    _exact_tangent(monkeypatch, fake)
+    GraspFE.solve_muscles(fake)
+    assert fake.tried[:4] == [("muscle load 0.25", 2.0), ("muscle load 0.5", 4.0),
+                              ("muscle load 0.375", 2.0), ("muscle load 0.5", 4.0)]
+    assert fake.muscle_load == 1.0
+
+
 def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(monkeypatch):
     """``muscle_frictionless_closing``: the closing (and its tight solve) runs at mu = 0, the
     stick anchors are then set on the closed state, and the torque homotopy runs at the
