@@ -90,7 +90,9 @@ class SolverSpec:
     # muscles mode: one Uzawa update (down to step_penetration_mm) after each torque step
     # that leaves the pads deeper than that, so every balanced load is a contact, not the
     # penalty's ~1 mm at 20 N (off by default; all updates after a balanced load made a jump
-    # the re-balance needed FE step cuts to 1/16 for - run r3, docs/grasp.md)
+    # the re-balance needed FE step cuts to 1/16 for - run r3, docs/grasp.md; with the
+    # per-load friction history the coarse cylinder balanced load 0.25 at 0.1 mm, then the
+    # torque steps' FE solves failed - runs U1/U2, seventeenth session)
     muscle_uzawa: bool = False
     # muscles mode: the kinematic closing runs frictionless (mu as a Constant set to 0), then
     # the stick anchors are set on the closed state and friction is switched on, so the torque
