@@ -846,7 +846,7 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
 def test_muscles_mode_retries_a_failed_load_with_the_last_balanced_penalty(monkeypatch):
     # the pressure-following penalty doubles before each load; a load that fails is retried
     # (halved) with the penalty of the last balanced load, not doubled again (the coarse
-    # cylinder with muscle_uzawa failed at 1e-4 of each retry's first step after 2.52 -> 5.03)
+    # cylinder with muscle_uzawa failed each retry's first step, cut to 1/4096, at 5.03 N/mm3)
     import dataclasses
     from types import SimpleNamespace
 

@@ -1353,9 +1353,9 @@ class GraspFE:
         self.muscle_load = 0.0
         # the penalty may double before a load; the retry of a failed load keeps the penalty
         # the last balanced load had (on the coarse cylinder with muscle_uzawa, 2.52 -> 5.03
-        # N/mm3 before each retry of loads 0.5, 0.375, 0.3125, 0.28 left the first torque
-        # step's FE solve failing at 1e-4 of the step: the stiffer penalty, not the load)
-        growth = 2.0
+        # N/mm3 before each retry of loads 0.5, 0.375, 0.3125 left the first torque step's FE
+        # solve failing with the step cut to 1/4096: the stiffer penalty, not the load)
+        retry = False
         try:
             while done < 1.0 - 1e-12:
                 lam = min(1.0, done + ds)
@@ -1363,15 +1363,16 @@ class GraspFE:
                 self.force_target = (1.0 - lam) * f_hold
                 snap = self._snapshot()
                 self.say(f"  muscle load {lam:.3f}")
-                self._penalty_to_pressure(max_growth=growth)
+                if not retry:
+                    self._penalty_to_pressure()
                 ok, why = self._balance_torques(10.0 * s.torque_rtol if lam < 1.0
                                                 else s.torque_rtol, label=f"muscle load {lam:.3g}")
                 if ok:
                     done = self.muscle_load = lam
-                    growth = 2.0
+                    retry = False
                     continue
                 self._restore(snap)
-                growth = 1.0
+                retry = True
                 ds *= 0.5
                 self.cuts += 1
                 if ds < 1.0 / (16 * s.muscle_steps):
@@ -1411,7 +1412,7 @@ class GraspFE:
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
 
-    def _penalty_to_pressure(self, *, resolve: bool = False, max_growth: float = 2.0) -> None:
+    def _penalty_to_pressure(self, *, resolve: bool = False) -> None:
         """``solver.muscle_penalty_follows_pressure``: before a muscle load (and the final Uzawa
         phase) raise k_n towards the larger of adaptive_penalty x the pads' peak pressure /
         facet size and peak pressure / step_penetration_mm (the first alone allows 0.4 mm of
@@ -1424,8 +1425,7 @@ class GraspFE:
         ``resolve`` (the final phase): re-solve with the stiffer penalty at once, giving the
         data back if that fails. Before a muscle load the first torque step's FE solve does
         it, moving the bones too: a re-solve at the fixed posture failed there (coarse
-        cylinder, 1.12 -> 2.23 N/mm3 at load 0.625) and kept the penalty from growing.
-        ``max_growth``: the most k_n may grow by in this call (1 = not at all)."""
+        cylinder, 1.12 -> 2.23 N/mm3 at load 0.625) and kept the penalty from growing."""
         c = self.contact
         if not (self.wf.solver.muscle_penalty_follows_pressure and c.uzawa is not None
                 and c.adaptive_penalty is not None):
@@ -1433,9 +1433,9 @@ class GraspFE:
         k = float(c.k_n.value)
         p = c.uzawa.peak_pressure()
         target = p * max(c.adaptive_penalty / c.h_mm, 1.0 / self.wf.solver.step_penetration_mm)
-        # at most 2x per load (``max_growth``): 7x at once (0.53 -> 3.91 N/mm3 on the coarse
-        # cylinder) left the FE Newton of the next torque step failing through every cut
-        target = min(target, max_growth * k)
+        # at most 2x per load: 7x at once (0.53 -> 3.91 N/mm3 on the coarse cylinder) left the
+        # FE Newton of the next torque step failing through every cut
+        target = min(target, 2.0 * k)
         if target > k:
             before = self._contact_data()
             off = c.stiffen(target)
