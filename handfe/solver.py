@@ -283,7 +283,11 @@ class NewtonOptions:
     updated (their state is only the start of the next solve); once ``augment`` accepts, the
     state is converged to ``atol`` and checked again, so the accepted state meets ``atol``. A
     load step that fails this way is tried once more with every solve converged to ``atol``
-    (multipliers updated from loose states can stall Newton) before the step is cut."""
+    (multipliers updated from loose states can stall Newton) before the step is cut.
+
+    ``inversion_guard`` (0 = off, else in (0, 1)): every Newton step is shortened so that no
+    cell's J = det F drops below this fraction of its value at the iterate
+    (:mod:`handfe.step_guard`); a step that would invert cells otherwise gives a NaN residual."""
 
     rtol: float = 1e-9
     atol: float = 1e-10
@@ -292,6 +296,7 @@ class NewtonOptions:
     linear_solver: str = "mumps"
     petsc_options: Mapping[str, Any] = field(default_factory=dict)
     augment_atol: float | None = None
+    inversion_guard: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -378,6 +383,13 @@ class NewtonSolver:
             db.delValue(self.prefix + k)
         self.history: list[float] = []
         self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
+        self.guard = None
+        if opts.inversion_guard > 0.0:
+            from handfe.step_guard import InversionGuard
+
+            self.guard = InversionGuard(problem.w, mixed=problem.disc.mixed,
+                                        keep=opts.inversion_guard)
+            self.snes.setLineSearchPreCheck(self.guard)
 
     def set_atol(self, atol: float) -> None:
         """Absolute residual tolerance of the following solves."""

@@ -18,7 +18,13 @@ from handfe.materials import (
     StVenantKirchhoff,
     homogeneous,
 )
-from handfe.solver import Discretisation, HyperelasticProblem, LoadStepping, solve
+from handfe.solver import (
+    Discretisation,
+    HyperelasticProblem,
+    LoadStepping,
+    NewtonOptions,
+    solve,
+)
 from handfe.verification import _facets, cube_stress_curve, unit_cube
 
 LAMS = [0.7, 1.0, 1.3, 1.6]
@@ -249,3 +255,56 @@ def test_lifting_skipped_only_where_it_adds_zero():
         for v in (ref, got):
             v.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         assert np.array_equal(ref.array, got.array)
+
+
+def _traction_cube(guard: float, line_search: str, steps: int) -> float:
+    """Unit cube, Neo-Hookean (E = 1 MPa, nu = 0.3, P1), symmetry planes fixed, nominal
+    compressive traction 1.5 MPa on x = 1; returns the smallest u_x (mm)."""
+    import dolfinx.mesh as dmesh
+
+    msh = unit_cube(MPI.COMM_SELF, 2)
+    prob = HyperelasticProblem(msh, NeoHookean.from_E_nu(1.0, 0.3), disc=Discretisation("p1"))
+    for a in range(3):
+        prob.fix(_facets(msh, a, 0.0), components=(a,))
+    fac = _facets(msh, 0, 1.0)
+    mt = dmesh.meshtags(msh, 2, fac, np.full(len(fac), 1, dtype=np.int32))
+    ds = ufl.Measure("ds", domain=msh, subdomain_data=mt)
+    t = fem.Constant(msh, 0.0)
+    prob.add_residual(t * prob.vu[0] * ds(1))
+
+    def set_load(s):
+        t.value = 1.5 * s
+
+    solve(prob, set_load, newton=NewtonOptions(linesearch=line_search, inversion_guard=guard,
+                                               max_it=50),
+          stepping=LoadStepping(initial=1.0 / steps, min_step=1.0 / steps,
+                                max_step=1.0 / steps))
+    return float(prob.displacement().x.array.reshape(-1, 3)[:, 0].min())
+
+
+def test_inversion_guard_turns_an_inverting_full_step_into_a_converging_one():
+    """A 1.5 MPa compressive traction on an E = 1 MPa cube in one load step: the first full
+    Newton step (the linear response, strain -1.5) inverts every cell, so full steps give a NaN
+    residual (SNES -4); with the guard (J kept >= 0.1 x its value per step) the same full-step
+    Newton converges to the solution of 40 small steps."""
+    with pytest.raises(SolverError, match="NAN"):
+        _traction_cube(0.0, "basic", 1)
+    ref = _traction_cube(0.0, "bt", 40)
+    assert -0.7 < ref < -0.5  # lambda ~ 0.39 at 1.5 MPa nominal stress
+    assert _traction_cube(0.1, "basic", 1) == pytest.approx(ref, abs=1e-8)
+
+
+def test_admissible_step_of_the_inversion_guard():
+    from handfe.step_guard import admissible_step
+
+    eye = np.eye(3)[None]
+    # det(I - s diag(2, 0, 0)) = 1 - 2 s >= 0.1 for s <= 0.45: the grid point 14/32 below it
+    assert admissible_step(eye, np.diag([2.0, 0, 0])[None], 0.1) == pytest.approx(14 / 32)
+    assert admissible_step(eye, -np.diag([2.0, 0, 0])[None], 0.1) == 1.0  # stretching
+    # a step that inverts at s ~ 1e-6 is cut to the geometric grid below it
+    s = admissible_step(eye, np.diag([1e6, 0, 0])[None], 0.1)
+    assert 0 < s < 0.9e-6
+    # an already inverted cell is ignored, the others still count
+    A = np.stack([np.diag([-1.0, 1, 1]), np.eye(3)])
+    B = np.stack([np.zeros((3, 3)), np.diag([2.0, 0, 0])])
+    assert admissible_step(A, B, 0.1) == pytest.approx(14 / 32)

@@ -69,6 +69,9 @@ def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\ndigit_force_rtol = 1.5\n')
     with pytest.raises(ConfigError, match="digit_force_rtol"):
         load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\ninversion_guard = 1.0\n')
+    with pytest.raises(ConfigError, match="inversion_guard"):
+        load_workflow(p)
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nresolve_linesearch = "l2"\n')
     with pytest.raises(ConfigError, match="resolve_linesearch"):
         load_workflow(p)

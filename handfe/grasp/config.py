@@ -166,6 +166,10 @@ class SolverSpec:
     # Uzawa update enforces the gap (P1 elements only; docs/contact.md); "gauss" = 2nd order
     contact_quadrature: str = field(default="gauss", metadata=choices("gauss", "vertex"))
     newton_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
+    # fraction-to-the-boundary rule on J = det F (handfe.step_guard): every Newton step is
+    # shortened so that no cell's J drops below inversion_guard x its value at the iterate
+    # (full steps at a stiff loaded contact inverted cells: NaN residual, SNES -4). 0 = off
+    inversion_guard: float = field(default=0.0, metadata=bounds(0.0, 0.9))
     # line search of the re-solves after a change of the contact data (Uzawa update, penalty
     # increase) from a converged state; "basic" falls back to "bt" from that state
     resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))

@@ -22,6 +22,7 @@ from petsc4py import PETSc
 
 from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
 from handfe.solver import Discretisation, lift_unless_satisfied
+from handfe.step_guard import InversionGuard
 
 SKIN, SUBCUT, NAIL = 1, 2, 3
 # Brezzi-Pitkaranta weight of the equal-order pressure stabilisation (element "p1-p1s"): chosen on
@@ -225,8 +226,11 @@ class TwoFormNewton:
     _count = 0
 
     def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
-                 max_it: int = 25):
+                 max_it: int = 25, guard_keep: float = 0.0):
         self.problem = problem
+        #: shortens Newton steps that would take a cell below guard_keep x its J (0 = off)
+        self.guard = InversionGuard(problem.w, mixed=True, keep=guard_keep) \
+            if guard_keep > 0.0 else None
         W = problem.W
         du = ufl.TrialFunction(W)
         R1 = problem.internal_residual
@@ -271,6 +275,8 @@ class TwoFormNewton:
         for k in opts:
             db.delValue(prefix + k)
         snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
+        if self.guard is not None:
+            snes.setLineSearchPreCheck(self.guard)
         return snes
 
     def _residual(self, snes, x, b):

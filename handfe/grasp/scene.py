@@ -647,7 +647,8 @@ class GraspFE:
         self.contact.max_penalty_growth = 4.0  # stronger growth ruins Newton on the hand
         # contact Newton often converges linearly for a while (active set settling): 40
         # iterations before a cut wastes less than restarting a halved step
-        self.solver = TwoFormNewton(self.problem, max_it=40)
+        self.solver = TwoFormNewton(self.problem, max_it=40,
+                                    guard_keep=s.inversion_guard)
         # Newton on the contact kinks can cycle between two active sets at a residual of
         # 1e-5 N (whole-hand cylinder, 1 Dec 2026): below 1e-4 N (out of balance force, N;
         # 2e-5 of a 5 N digit force) that state is accepted, counted in the summary
@@ -1740,6 +1741,9 @@ class GraspFE:
                 "max_penetration_mm": float(pen), "load_steps": len(self.steps),
                 "newton_iterations": int(self.solver.iterations),
                 "newton_stalls_accepted": int(self.solver.stalls),
+                # Newton steps the inversion guard shortened, and the smallest fraction kept
+                "guarded_steps": int(g.shortened) if (g := self.solver.guard) else 0,
+                "smallest_guarded_step": float(g.smallest) if g else 1.0,
                 "final_residual_N": self._residual_norm(),
                 "outer_iterations": self.outer_iterations,
                 "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
