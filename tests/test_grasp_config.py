@@ -594,15 +594,15 @@ class _FakeMuscles:
     def digit_forces(self):
         return {"index": float(-self._tissue(self.theta).sum() / 40.0)}
 
-    def _balance_torques(self, rtol, *, label):
+    def _balance_torques(self, rtol, *, label, uzawa_depth_mm=None):
         from handfe.grasp.scene import GraspFE
 
-        return GraspFE._balance_torques(self, rtol, label=label)
+        return GraspFE._balance_torques(self, rtol, label=label, uzawa_depth_mm=uzawa_depth_mm)
 
-    def _balance(self, rtol, *, label):
+    def _balance(self, rtol, *, label, uzawa_depth_mm=None):
         from handfe.grasp.scene import GraspFE
 
-        return GraspFE._balance(self, rtol, label=label)
+        return GraspFE._balance(self, rtol, label=label, uzawa_depth_mm=uzawa_depth_mm)
 
     def _grip_stall(self):
         from handfe.grasp.scene import GraspFE
@@ -723,8 +723,9 @@ def test_muscles_mode_friction_history_per_load_is_held_inside_each_balance(monk
 
     fake._go_to = go_to
     balances = []  # (the return mappings marked before it) per torque balance
-    fake._balance = lambda rtol, *, label: (balances.append(len(marked)),
-                                            GraspFE._balance(fake, rtol, label=label))[1]
+    fake._balance = lambda rtol, *, label, uzawa_depth_mm=None: (
+        balances.append(len(marked)),
+        GraspFE._balance(fake, rtol, label=label, uzawa_depth_mm=uzawa_depth_mm))[1]
     GraspFE.solve_muscles(fake)
     assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
     assert held and all(held) == (history == "load") and any(held) == (history == "load")
@@ -1117,14 +1118,14 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
 
     fake.contact.uzawa = type("U", (), {"penetration": lambda self: depth["mm"]})()
     fake.augment = augment
-    fake._one_uzawa_update = lambda: GraspFE._one_uzawa_update(fake)
+    fake._one_uzawa_update = lambda d: GraspFE._one_uzawa_update(fake, d)
     _exact_tangent(monkeypatch, fake)
     ends = []
     balance = fake._balance_torques
 
-    def spy(rtol, *, label):
+    def spy(rtol, *, label, uzawa_depth_mm=None):
         depth["mm"] = 1.0  # a new load sinks the pads in again
-        ok, why = balance(rtol, label=label)
+        ok, why = balance(rtol, label=label, uzawa_depth_mm=uzawa_depth_mm)
         ends.append(depth["mm"])
         return ok, why
 
@@ -1132,6 +1133,36 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
     GraspFE.solve_muscles(fake)
     assert calls and set(calls) == {(0.1, False)}
     assert max(ends) <= 0.1  # every balanced load ended within step_penetration_mm
+    assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+
+
+def test_muscles_mode_interleaved_final_phase_updates_between_torque_steps(monkeypatch):
+    # muscle_final_uzawa = "interleaved": no Uzawa phase at the fixed posture after the full
+    # load; the final balance takes one update (penetration only, to penetration_tol_mm)
+    # after its torque steps and ends balanced with the pads within the tolerance
+    from dataclasses import replace
+
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeMuscles([900.0, 400.0])
+    fake.wf.solver = replace(fake.wf.solver, muscle_final_uzawa="interleaved",
+                             penetration_tol_mm=0.01)
+    depth = {"mm": 1.2}
+    calls: list[tuple] = []
+
+    def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None):
+        assert max_updates == 1, "no Uzawa phase at the fixed posture"
+        calls.append((tol_mm, creep))
+        if depth["mm"] > tol_mm:
+            depth["mm"] *= 0.4
+
+    fake.contact.uzawa = type("U", (), {"penetration": lambda self: depth["mm"]})()
+    fake.augment = augment
+    fake._one_uzawa_update = lambda d: GraspFE._one_uzawa_update(fake, d)
+    _exact_tangent(monkeypatch, fake)
+    GraspFE.solve_muscles(fake)
+    assert len(calls) >= 5 and set(calls) == {(0.01, False)}
+    assert depth["mm"] <= 0.01
     assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
 
 

@@ -120,6 +120,14 @@ class SolverSpec:
     # every torque iteration's FE solve (before): the contact data changed between
     # iterations and the same run chattered at 3e-3 - 7e-3 (docs/grasp.md)
     muscle_friction_history: str = field(default="load", metadata=choices("load", "iteration"))
+    # muscles mode, after the full EMG load: "fixed" = Uzawa updates at the fixed posture
+    # until the penetration is <= penetration_tol_mm, then the torque balance again (three
+    # rounds at most); on the coarse cylinder the fixed bones squeezed the pads as their depth
+    # went 1.16 -> 0.5 mm, the updates failed, and the re-balance began with the thumb CMC at
+    # 15x its muscle torque (docs/grasp.md, eighteenth session). "interleaved" = one Uzawa
+    # update after every torque step of that balance until both hold, so the joints give way
+    # as the pads harden
+    muscle_final_uzawa: str = field(default="fixed", metadata=choices("fixed", "interleaved"))
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

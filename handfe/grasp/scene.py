@@ -1382,11 +1382,15 @@ class GraspFE:
                 self.say(f"    muscle load {lam:.3g} failed ({why}): step halved")
             self._penalty_to_pressure(resolve=True)
             balanced = self._snapshot()  # a failed round reports this, not an unbalanced state
+            interleaved = s.muscle_final_uzawa == "interleaved"
+            depth = {"uzawa_depth_mm": s.penetration_tol_mm} if interleaved else {}
             for _ in range(3):
-                with self._grip_stall():
-                    self._scale_stall_to_grip()
-                    self.augment()
-                ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)")
+                if not interleaved:
+                    with self._grip_stall():
+                        self._scale_stall_to_grip()
+                        self.augment()
+                ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)",
+                                                **depth)
                 pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
                 if ok:
                     balanced = self._snapshot()
@@ -1450,11 +1454,12 @@ class GraspFE:
                 self._resolve("re-solve with the stiffer penalty",
                               lambda: self._set_contact_data(before))
 
-    def _balance_torques(self, rtol: float, *, label: str) -> tuple[bool, str]:
+    def _balance_torques(self, rtol: float, *, label: str,
+                         uzawa_depth_mm: float | None = None) -> tuple[bool, str]:
         """:meth:`_balance` with the FE stall tolerance scaled to the grip (restored after)
         and, with ``solver.muscle_friction_history = "load"``, the friction history held."""
         with self._grip_stall(), self._friction_history_per_load():
-            return self._balance(rtol, label=label)
+            return self._balance(rtol, label=label, uzawa_depth_mm=uzawa_depth_mm)
 
     @contextlib.contextmanager
     def _friction_history_per_load(self):
@@ -1509,19 +1514,24 @@ class GraspFE:
         self.at_limit = ((self.theta >= self.kin.hi - 1e-9) & (g > 0)) | (
             (self.theta <= self.kin.lo + 1e-9) & (g < 0))
 
-    def _balance(self, rtol: float, *, label: str) -> tuple[bool, str]:
+    def _balance(self, rtol: float, *, label: str,
+                 uzawa_depth_mm: float | None = None) -> tuple[bool, str]:
         """Newton on the released joint angles (and, with a free object, its translation)
         until applied (``tau_muscle``) + ligament + tissue torque is <= ``rtol`` (relative) at
         every free joint and the object's net force is within ``rtol`` of the grip of its
-        target; a joint pushed past its limit stays there (end stop). Returns (converged, why
-        not)."""
+        target; a joint pushed past its limit stays there (end stop). With
+        ``uzawa_depth_mm`` (or ``solver.muscle_uzawa``: step_penetration_mm) one Uzawa update
+        follows every torque step that leaves the pads deeper than that, and the balance
+        ends only once they are not. Returns (converged, why not)."""
         from handfe.grasp import fe
 
         s = self.wf.solver
         free_obj = getattr(self, "object_free", False)
         # muscle_uzawa: one Uzawa update after every torque step that leaves the pads deeper
         # than step_penetration_mm (a few tenths of a mm at a time, not one jump at the end)
-        uzawa = s.muscle_uzawa and self.contact.uzawa is not None
+        if uzawa_depth_mm is None and s.muscle_uzawa:
+            uzawa_depth_mm = s.step_penetration_mm
+        uzawa = uzawa_depth_mm is not None and self.contact.uzawa is not None
         nj = len(self.joints)
         n_t = 3 if free_obj else 0
         # unknowns (theta in rad, t / OBJECT_LENGTH_MM) and residuals (torques in N mm, the
@@ -1561,14 +1571,14 @@ class GraspFE:
                 rel = max(rel, rel_f)
             self.say(msg)
             self._scale_stall_to_grip()
-            deep = uzawa and self.contact.uzawa.penetration() > s.step_penetration_mm
+            deep = uzawa and self.contact.uzawa.penetration() > uzawa_depth_mm
             if rel <= rtol and not deep:
                 self.torque = tq
                 return True, ""
             if rel <= rtol:
                 # balanced, but the pads are deeper than step_penetration_mm: one Uzawa update
                 # and the balance goes on from there
-                self._one_uzawa_update()
+                self._one_uzawa_update(uzawa_depth_mm)
                 last = None
                 continue
             if last is not None:
@@ -1643,14 +1653,15 @@ class GraspFE:
                 taken = np.concatenate([taken, (np.array(self.contact.translation.value,
                                                          dtype=float) - t_now) / L])
             last = (gx, J @ taken)
-            if uzawa and self.contact.uzawa.penetration() > s.step_penetration_mm:
-                self._one_uzawa_update()
+            if uzawa and self.contact.uzawa.penetration() > uzawa_depth_mm:
+                self._one_uzawa_update(uzawa_depth_mm)
                 last = None  # the update changed the residual: no response ratio from it
         return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
 
-    def _one_uzawa_update(self) -> None:
-        """One Uzawa update of the normal multipliers (penetration only) and its re-solve."""
-        self.augment(self.wf.solver.step_penetration_mm, creep=False, max_updates=1)
+    def _one_uzawa_update(self, depth_mm: float) -> None:
+        """One Uzawa update of the normal multipliers (penetration only, unless it is <=
+        ``depth_mm``) and its re-solve."""
+        self.augment(depth_mm, creep=False, max_updates=1)
 
     def _friction_use(self) -> str:
         """Each participating digit's tangential / normal contact force against the friction
