@@ -188,3 +188,54 @@ def test_condensed_tangent_of_the_object_translation_matches_finite_differences(
             bc.set(motions)
         F_th[:, i] = (out[0] - out[1]) / (2 * h)
     assert np.allclose(T.force_theta, F_th, rtol=0.0, atol=1e-3 * np.abs(F_th).max())
+
+
+@pytest.mark.mpi
+def test_tangent_predictor_of_a_joint_step_is_first_order_exact():
+    # solver.tangent_predictor: the state moved by the condensed tangent's response to a joint
+    # step (GraspFE._tangent_prediction) leaves a residual O(step^2), while the elastic
+    # extension of the bone motion leaves O(step) against a stiff, nonlinear foundation
+    # (standing in for loaded pads)
+    from handfe.grasp.fe import condensed_tangent
+    from handfe.grasp.scene import GraspFE
+
+    comm = MPI.COMM_WORLD
+    msh, problem, bc, ds = _block(comm)
+    k = fem.Constant(msh, 0.05)  # MPa/mm: 50x the Jacobian test's foundation
+    u = ufl.split(problem.w)[0]
+    problem.add_residual(k * (1.0 + ufl.inner(u, u)) * ufl.inner(u, problem.vu) * ds(7))
+    solver = TwoFormNewton(problem, max_it=40)
+    theta = np.radians([3.0, -2.0])
+    bc.set(_chain(theta)[0])
+    ok, _, reason = solver.solve()
+    assert ok, reason
+    w0 = problem.w.x.array.copy()
+    bc0 = bc.ubc.x.array.copy()
+    T = condensed_tangent(solver, bc, _chain(theta)[1], DISTAL, comm, responses=True)
+    assert len(T.response_theta) == 2
+    scene = SimpleNamespace(_theta_response=T.response_theta, bc=bc)
+
+    def residual() -> float:
+        x = problem.w.vector.copy()
+        b = x.duplicate()
+        solver._residual(None, x, b)
+        n = b.norm()
+        x.destroy()
+        b.destroy()
+        return float(n)
+
+    r_ext, r_tan = [], []
+    for h in (np.radians([1.0, -1.5]), np.radians([0.5, -0.75])):
+        problem.w.x.array[:] = w0
+        problem.w.x.scatter_forward()
+        bc.set(_chain(theta + h)[0])
+        bc.predict(bc0)
+        ext = problem.w.x.array.copy()
+        r_ext.append(residual())
+        problem.w.x.array[:] = GraspFE._tangent_prediction(scene, w0, ext, h)
+        problem.w.x.scatter_forward()
+        r_tan.append(residual())
+        bc.set(_chain(theta)[0])
+    assert r_tan[0] < 0.1 * r_ext[0], (r_tan, r_ext)
+    assert r_ext[0] / r_ext[1] < 2.5  # first order
+    assert r_tan[0] / r_tan[1] > 3.0  # second order: halving the step quarters it

@@ -128,6 +128,11 @@ class SolverSpec:
     # update after every torque step of that balance until both hold, so the joints give way
     # as the pads harden
     muscle_final_uzawa: str = field(default="fixed", metadata=choices("fixed", "interleaved"))
+    # muscles mode: each torque step's FE solve may also start from the linear response of the
+    # condensed tangent (dw/dtheta, the solves it needs anyway) to the step's joint angles,
+    # next to the elastic extension of the bone motion and the secant predictor; the one with
+    # the smallest residual is used (summary.json "predictor_wins")
+    tangent_predictor: bool = False
     # before meshing, each digit closes rigidly (its released joints by one common angle, at
     # most preclose_max_deg) until its skin is preclose_clearance_mm from the object
     pre_close: bool = True

@@ -520,17 +520,19 @@ class CondensedTangent:
     """The FE tangent condensed onto the joint angles theta (rad) and the object's translation
     t (mm), with the tissue in equilibrium. Torques in N mm, object force (the net force the
     skin exerts on the object) in N. ``response_t``: the linear change of the state (owned
-    entries of the (u, p) vector) per unit t_c, the predictor of an object move."""
+    entries of the (u, p) vector) per unit t_c, the predictor of an object move;
+    ``response_theta`` (with ``responses``): the same per radian of each joint angle."""
 
     torque_theta: np.ndarray                     # (joints, joints)
     torque_t: np.ndarray | None = None           # (joints, 3)
     force_theta: np.ndarray | None = None        # (3, joints)
     force_t: np.ndarray | None = None            # (3, 3)
     response_t: list[np.ndarray] = field(default_factory=list)
+    response_theta: list[np.ndarray] = field(default_factory=list)
 
 
 def condensed_tangent(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_sets, comm, *,
-                      translate: bool = False) -> CondensedTangent:
+                      translate: bool = False, responses: bool = False) -> CondensedTangent:
     """d(tissue torque_j)/d(theta_i) (N mm / rad) with the tissue in equilibrium: the bone
     nodes of the bones distal to joint i rotate about its axis (v = a_i x (x - c_i)), the free
     dofs follow (K_ff dz = -K_fb v, solved with the factorised Newton matrix), and the change of
@@ -544,7 +546,12 @@ def condensed_tangent(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_se
     is the contact force on the object). R(u + c, t + c) = R(u, t) for a uniform shift c (the
     tissue energy depends on grad u, the contact on x - t), so moving the object by dt is
     moving every Dirichlet node by -dt: with w_c the response to a unit shift of all Dirichlet
-    nodes along e_c, du/dt_c = 1_c - w_c and dR/dt_c = -K w_c."""
+    nodes along e_c, du/dt_c = 1_c - w_c and dR/dt_c = -K w_c.
+
+    ``responses``: keep the state change per radian of each joint (``response_theta``), the
+    tangent predictor of a torque step: the pads' response to a bone move as the current
+    contact gives it, where the elastic extension of the bone motion pushes them into the
+    object."""
     Jm = _lever_jacobian(solver, bc, axes_centres, distal_sets, comm)
     K = solver.full_matrix()
     A = solver.A
@@ -593,7 +600,9 @@ def condensed_tangent(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_se
                 continue
             wd, comp, x = bc.node_data(b)
             arr[wd] = np.cross(a, x - c)[np.arange(len(wd)), comp]
-        _, dtq, df = respond(arr)
+        z_i, dtq, df = respond(arr)
+        if responses:
+            out.response_theta.append(z_i)
         Jm[:, i] += dtq
         if translate:
             out.force_theta[:, i] = df

@@ -684,6 +684,10 @@ class GraspFE:
         self.translation0 = np.asarray(shift, dtype=float).copy()
         self.force_target = np.zeros(3)  # N: net contact force the object must carry
         self._t_response: list[np.ndarray] = []  # du/dt_c (tangent predictor of a translation)
+        # dw/dtheta_i per rad (solver.tangent_predictor) at the start of a torque step, or None
+        self._theta_response: list[np.ndarray] | None = None
+        # which predictor started each FE solve of a bone step (the smallest residual wins)
+        self.predictor_wins = {"extension": 0, "secant": 0, "tangent": 0}
 
     # -- one boundary-condition step with cutting
     def _go_to(self, theta: np.ndarray, *, label: str, max_cuts: int = 6,
@@ -692,6 +696,7 @@ class GraspFE:
         (mm; default: where it is), in sub-steps cut on failure (each with the same fraction of
         both); SolverError after ``max_cuts`` cuts, with the last converged state kept."""
         theta = self.kin.clamp(theta)
+        dtheta = np.radians(theta - self.theta)  # the whole step, rad
         skel = self.kin.skeleton(theta)
         target = self.kin.motions(skel)
         prev = self.motions
@@ -714,25 +719,39 @@ class GraspFE:
             dbc = self._norm(self.bc.ubc.x.array - bc_conv)
             w = self.problem.w
             self.bc.predict(bc_conv)
+            t_add = 0.0
             if self._t_response and np.any(t_new != t_conv):
                 # the object's move: the linear response of the last tangent (the elastic
                 # extension of a uniform shift of every Dirichlet node is that shift: the pads
-                # would not follow the object at all)
+                # would not follow the object at all); zero on the Dirichlet dofs
                 dt = t_new - t_conv
                 n = len(self._t_response[0])
-                w.x.array[:n] += sum(dt[c] * self._t_response[c] for c in range(3))
+                t_add = sum(dt[c] * self._t_response[c] for c in range(3))
+                w.x.array[:n] += t_add
                 w.x.scatter_forward()
+            # predictors, the one with the smallest residual wins: the elastic extension of
+            # the bone motion (robust far from contact, but it pushes loaded pads into the
+            # object); the secant one, the last accepted increment scaled by the bone motion
+            # (it carries the contact response; overshoots when the pads stiffen); with
+            # solver.tangent_predictor in a torque step, the linear response of the last
+            # condensed tangent to the joint angles' change (exact to first order)
+            cand = {"extension": w.x.array.copy()}
             if self._dw is not None and cuts == 0 and self._dbc > 0.0:
-                # two predictors, the one with the smaller residual wins: the elastic extension
-                # of the bone motion (robust far from contact, but it pushes loaded pads into
-                # the object) and the secant one, the last accepted increment scaled by the bone
-                # motion (it carries the contact response; overshoots when the pads stiffen)
-                r_ext = self._residual_norm()
-                ext = w.x.array.copy()
-                self._set_state(w0 + (dbc / self._dbc) * self._dw)
-                r_sec = self._residual_norm()
-                if not (np.isfinite(r_sec) and r_sec < r_ext):  # NaN: inverted cells
-                    self._set_state(ext)
+                cand["secant"] = w0 + (dbc / self._dbc) * self._dw
+            if self._theta_response is not None:
+                cand["tangent"] = self._tangent_prediction(
+                    w0, cand["extension"], (frac - done_frac) * dtheta, t_add)
+            if len(cand) > 1:
+                r = {}
+                for name, arr in cand.items():
+                    self._set_state(arr)
+                    r[name] = self._residual_norm()
+                # NaN (inverted cells) never wins; the extension is always finite or nothing is
+                best = min(r, key=lambda k: r[k] if np.isfinite(r[k]) else np.inf)
+                self._set_state(cand[best])
+                self.predictor_wins[best] += 1
+            else:
+                self.predictor_wins["extension"] += 1
             ok, its, reason = self.solver.solve()
             if not ok and (self._fallback_ls == "bt" or np.isfinite(
                     self.solver.history[-1] if self.solver.history else 0.0)):
@@ -868,6 +887,21 @@ class GraspFE:
         """Set the state (u, p) from a local array with ghosts."""
         self.problem.w.x.array[:] = arr
         self.problem.w.x.scatter_forward()
+
+    def _tangent_prediction(self, w0: np.ndarray, ext: np.ndarray, dtheta: np.ndarray,
+                            t_add: np.ndarray | float = 0.0) -> np.ndarray:
+        """The state ``w0`` (last converged, with ghosts) moved by the linear response to the
+        joint-angle change ``dtheta`` (rad) of the last condensed tangent (plus ``t_add``, the
+        owned entries of a free object's move), with the bone nodes where the exact rigid
+        motion puts them (``ext``, the extension predictor, has them); ghosts from their
+        owners (:meth:`_set_state` scatters)."""
+        z = self._theta_response
+        n = len(z[0])
+        arr = w0.copy()
+        arr[:n] += sum(dt * zi for dt, zi in zip(dtheta, z, strict=True)) + t_add
+        bcd = self.bc.bc_dofs_W
+        arr[bcd] = ext[bcd]
+        return arr
 
     def _resolve(self, what: str, undo: Callable[[], None]) -> bool:
         """Re-solve after a change of the contact data; on failure restore the last converged
@@ -1590,11 +1624,13 @@ class GraspFE:
                                f"for {STALL_WINDOW} iterations; {self._friction_use()}")
             skel = self.kin.skeleton(self.theta)
             ac, dsets = self._joint_geometry(skel)
-            if free_obj:
+            if free_obj or s.tangent_predictor:
+                more = {"responses": True} if s.tangent_predictor else {}
                 T = fe.condensed_tangent(self.solver, self.bc, ac, dsets, self.problem.comm,
-                                         translate=True)
+                                         translate=free_obj, **more)
                 Jt = T.torque_theta
                 self._t_response = T.response_t
+                self._theta_response = T.response_theta or None
             else:
                 Jt = fe.condensed_torque_jacobian(self.solver, self.bc, ac, dsets,
                                                   self.problem.comm)
@@ -1647,6 +1683,8 @@ class GraspFE:
                             label=f"{label}, torque iteration {it}", max_cuts=3, **kw)
             except SolverError as exc:
                 return False, str(exc)
+            finally:
+                self._theta_response = None  # valid for this step only
             # the step taken (joint limits may have clamped it) and the change it predicted
             taken = np.radians(self.theta - before)
             if free_obj:
@@ -1752,6 +1790,7 @@ class GraspFE:
                 "max_penetration_mm": float(pen), "load_steps": len(self.steps),
                 "newton_iterations": int(self.solver.iterations),
                 "newton_stalls_accepted": int(self.solver.stalls),
+                "predictor_wins": dict(self.predictor_wins),
                 # Newton steps the inversion guard shortened, and the smallest fraction kept
                 "guarded_steps": int(g.shortened) if (g := self.solver.guard) else 0,
                 "smallest_guarded_step": float(g.smallest) if g else 1.0,
