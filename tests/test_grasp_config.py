@@ -338,7 +338,7 @@ class _FakeClosing:
 
         return contextlib.nullcontext()
 
-    def _tighten(self):
+    def _tighten(self, *, stalled=False):
         pass
 
     def _close_digits(self):
@@ -562,7 +562,7 @@ class _FakeMuscles:
 
         return contextlib.nullcontext()
 
-    def _tighten(self):
+    def _tighten(self, *, stalled=False):
         pass
 
     def _close_digits(self):
@@ -929,7 +929,7 @@ def test_muscles_mode_frictionless_closing_switches_friction_around_the_closing(
             close()
 
         fake._close_digits = closing
-        fake._tighten = lambda: (events.append(("tighten", c.mu)), tighten())[1]
+        fake._tighten = lambda **kw: (events.append(("tighten", c.mu)), tighten(**kw))[1]
         _exact_tangent(monkeypatch, fake)
         GraspFE.solve_muscles(fake)
         return fake
@@ -1057,7 +1057,7 @@ class _FakePinch(_FakeMuscles):
 
         return contextlib.nullcontext()
 
-    def _tighten(self):
+    def _tighten(self, *, stalled=False):
         pass
 
     def _close_digits(self):
@@ -1159,8 +1159,12 @@ def test_muscles_mode_interleaved_final_phase_updates_between_torque_steps(monke
     fake.contact.uzawa = type("U", (), {"penetration": lambda self: depth["mm"]})()
     fake.augment = augment
     fake._one_uzawa_update = lambda d: GraspFE._one_uzawa_update(fake, d)
+    tight = []
+    fake._tighten = lambda *, stalled=False: tight.append(stalled)
     _exact_tangent(monkeypatch, fake)
     GraspFE.solve_muscles(fake)
+    # the final state is solved tight (its FE solves may have stopped at a grip-scaled stall)
+    assert tight[-1] is True
     assert len(calls) >= 5 and set(calls) == {(0.01, False)}
     assert depth["mm"] <= 0.01
     assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
