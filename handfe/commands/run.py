@@ -15,11 +15,12 @@ stabilised continuous P1 pressure, solver.stabilisation_modulus "initial" or "ta
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:
-  muscles  EXPERIMENTAL, no run at the EMG forces has finished at the 0.01 mm contact:
-           the coarse cylinder balances the full EMG load to a relative torque residual
-           of ~5e-4, but on a penalty contact 1.2-1.3 mm deep, and its final Uzawa phase
-           fails; the pinch stalls at 41 % of the load, the index curled off its friction
-           cone; a run that gives up writes the last balanced load's results, marked
+  muscles  EXPERIMENTAL: the coarse cylinder (workflows/cylindrical_muscles.toml) balances
+           the full EMG load to a relative torque residual of 5e-4 with the pads within
+           0.01 mm, with solver.tangent_predictor, solver.inversion_guard and
+           solver.muscle_final_uzawa = "interleaved" (set there; off by default); without
+           them it ends on a penalty contact ~1.2 mm deep; the pinch stalled at 41 % of
+           the load; a run that gives up writes the last balanced load's results, marked
            partial; docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
