@@ -167,3 +167,24 @@ def test_final_phase_goes_on_loosely_and_keeps_only_a_tight_better_state(tight_o
     off = _FinalPhase(tight_ok, closing_atol_N=0.0)
     off._final_phase()
     assert off.contact.uzawa.penetration() == 0.058 and off.log == []
+
+
+def test_tight_final_solve_keeps_the_data_of_the_stalled_state():
+    # the muscles mode's final state (stopped at a grip-scaled stall) is solved tight with the
+    # data it was solved with: the p1-p1s stabilisation is not lagged first (a new modulus is
+    # new data: the coarse cylinder went from ~1e-2 to 0.41 N and the solve failed), and a
+    # state already within the stall tolerance is left alone
+    norms = [5e-3, 5e-3, 1e-10]
+    events = []
+    scene = SimpleNamespace(
+        wf=SimpleNamespace(solver=SolverSpec()), steps=[],
+        solver=SimpleNamespace(atol=1e-9, stall_atol=1e-4,
+                               solve=lambda: (events.append("solve"), (True, 3, "2"))[1]),
+        problem=SimpleNamespace(w=SimpleNamespace(x=SimpleNamespace(array=np.zeros(2)))),
+        _residual_norm=lambda: norms.pop(0),
+        _lag_stabilisation=lambda: events.append("lag"), say=lambda m: None)
+    assert GraspFE._tighten(scene, stalled=True)
+    assert events == ["solve"] and scene.steps[-1]["converged"]
+    events.clear()
+    norms[:] = [5e-5]
+    assert GraspFE._tighten(scene, stalled=True) and events == []

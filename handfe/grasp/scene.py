@@ -1224,7 +1224,10 @@ class GraspFE:
         if stalled and self._residual_norm() <= self.solver.stall_atol:
             return True
         w0 = self.problem.w.x.array.copy()
-        self._lag_stabilisation()
+        if not stalled:
+            # not for the final state: a new stabilisation modulus is new data (the coarse
+            # cylinder's final state went from ~1e-2 to 0.41 N, and the solve from there failed)
+            self._lag_stabilisation()
         r0 = self._residual_norm()
         ok, its, reason = self.solver.solve()
         if not ok:
