@@ -31,6 +31,7 @@ from petsc4py import PETSc
 
 from handfe.errors import InputError, SolverError
 from handfe.materials import BoundMaterial, Material
+from handfe.step_guard import InversionGuard
 
 ELEMENTS = ("taylor-hood", "p2", "p1", "p1-p0")
 MIXED_ELEMENTS = ("taylor-hood", "p1-p0")
@@ -385,8 +386,6 @@ class NewtonSolver:
         self.snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
         self.guard = None
         if opts.inversion_guard > 0.0:
-            from handfe.step_guard import InversionGuard
-
             self.guard = InversionGuard(problem.w, mixed=problem.disc.mixed,
                                         keep=opts.inversion_guard)
             self.snes.setLineSearchPreCheck(self.guard)

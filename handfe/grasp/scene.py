@@ -1221,14 +1221,14 @@ class GraspFE:
         object's equilibrium error at 6.3e-5), not only after loose closing solves."""
         if not stalled and self.wf.solver.closing_atol_N <= self.solver.atol:
             return True
-        if stalled and self._residual_norm() <= self.solver.stall_atol:
-            return True
         w0 = self.problem.w.x.array.copy()
         if not stalled:
             # not for the final state: a new stabilisation modulus is new data (the coarse
             # cylinder's final state went from ~1e-2 to 0.41 N, and the solve from there failed)
             self._lag_stabilisation()
         r0 = self._residual_norm()
+        if stalled and r0 <= self.solver.stall_atol:
+            return True
         ok, its, reason = self.solver.solve()
         if not ok:
             its0 = its
