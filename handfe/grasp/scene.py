@@ -1270,6 +1270,8 @@ class GraspFE:
                 self.say(f"  closing step {k}: digit forces " + ", ".join(
                     f"{d} {f:.2f}" for d, f in forces.items()) + " N")
                 said = k
+                if self.steps:  # the closing history in summary.json: forces after each step
+                    self.steps[-1]["digit_force_N"] = dict(forces)
             if not active:
                 break
             if solo & set(active):
