@@ -44,7 +44,11 @@ Writes into --out (rank 0):
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)
-A failed run writes summary.json with the failed stage and error and exits 2.
+Exit status: 0 for status "done"; 1 for "unbalanced" (the results are written, but the
+object's force and the support reactions differ by more than 1e-6 relative: the last Newton
+solve stopped at an accepted stall; summary.json final_residual_N says how far); 2 for a failed
+run, which writes summary.json with status "failed", the failed stage and the error (a
+muscles run also writes the last balanced load's results, marked "partial").
 
 Examples:
   handfe run workflows/cylindrical.toml --mesh reduced --out results/cylindrical
