@@ -1161,6 +1161,8 @@ def test_muscles_mode_interleaved_final_phase_updates_between_torque_steps(monke
     fake._one_uzawa_update = lambda d: GraspFE._one_uzawa_update(fake, d)
     tight = []
     fake._tighten = lambda *, stalled=False: tight.append(stalled)
+    resolves: list[bool] = []
+    fake._penalty_to_pressure = lambda resolve=False: resolves.append(resolve)
     _exact_tangent(monkeypatch, fake)
     GraspFE.solve_muscles(fake)
     # the final state is solved tight (its FE solves may have stopped at a grip-scaled stall)
@@ -1168,6 +1170,15 @@ def test_muscles_mode_interleaved_final_phase_updates_between_torque_steps(monke
     assert len(calls) >= 5 and set(calls) == {(0.01, False)}
     assert depth["mm"] <= 0.01
     assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+    # the penalty follows the pressure before each load, but is not raised and re-solved at the
+    # fixed posture before the interleaved phase (that re-solve failed on the coarse cylinder
+    # in runs C, D, E); the fixed phase still does it
+    assert resolves and not any(resolves)
+    fixed = _FakeMuscles([900.0, 400.0])
+    fixed._penalty_to_pressure = lambda resolve=False: resolves.append(resolve)
+    _exact_tangent(monkeypatch, fixed)
+    GraspFE.solve_muscles(fixed)
+    assert resolves[-1] is True
 
 
 def test_friction_demand_matches_a_dense_search_and_a_closed_form():
