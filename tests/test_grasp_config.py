@@ -314,7 +314,7 @@ class _FakeClosing:
                   if a != b]
         if "thumb" in moving and len(moving) > 1:
             raise SolverError(f"load step '{label}' did not converge", load_step=1)
-        self.steps.append(moving)
+        self.steps.append({"step": label, "moving": moving})  # as GraspFE records steps
         self.theta = np.array(theta, dtype=float)
 
     def _snapshot(self):
@@ -369,9 +369,13 @@ def test_closing_redoes_a_failed_multi_digit_step_one_digit_at_a_time():
     GraspFE.solve_angles(fake)
     assert fake.stalled == {}
     assert any("one digit at a time" in m for m in fake.log)
-    assert all(len(m) == 1 for m in fake.steps[1:])  # after the failure: one digit per step
+    # after the failure: one digit per step
+    assert all(len(st["moving"]) == 1 for st in fake.steps[1:])
     for d, f in fake.digit_forces().items():
         assert 4.0 <= f <= 6.0, (d, f)
+    # the closing history (summary.json steps): the digit forces after each closing step
+    assert fake.steps[-1]["digit_force_N"] == fake.digit_forces()
+    assert all("digit_force_N" in st for st in fake.steps)
 
 
 class _FakeUzawa:
