@@ -18,10 +18,11 @@ Loading:
   muscles  EXPERIMENTAL: the coarse cylinder (workflows/cylindrical_muscles.toml) balances
            the full EMG load to a relative torque residual of 5e-4 with the pads within
            0.01 mm, with solver.tangent_predictor, solver.inversion_guard and
-           solver.muscle_final_uzawa = "interleaved" (set there; off by default); without
-           them it ends on a penalty contact ~1.2 mm deep; the pinch stalled at 41 % of
-           the load; a run that gives up writes the last balanced load's results, marked
-           partial; docs/grasp.md (README: Grasp status).
+           solver.muscle_final_uzawa = "interleaved" (set there; off by default), but
+           ends with status "unbalanced" (object vs support 6e-5: FE stalls at a contact
+           kink); without them it ends on a penalty contact ~1.2 mm deep; the pinch
+           stalled at 41 % of the load; a run that gives up writes the last balanced load's
+           results, marked partial; docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
