@@ -157,11 +157,12 @@ def test_precision_light_grip_one_rank_matches_two_ranks(light_pinch):
     digit forces, grip, region forces and areas.
 
     The comparison is strict (1e-5) when both runs took the same discrete decisions (Newton
-    iterations per step, step cuts, Uzawa updates, overshoot retries); that was so on 7 of 7
-    fresh meshes (4 Dec 2026: grips agreed to 1e-11). Round-off can flip such a decision (a
-    Newton solve stopping one iteration earlier at the loose closing tolerance, a step failing
-    at the edge of its last cut) and the paths then part: the frictional, load-stepped solution
-    depends on its path (a CI mesh ended at grip 3.657 N on 1 rank vs 3.747 N on 2, 4 Dec 2026).
+    iterations per step, step cuts, Uzawa updates, overshoot retries); that was so on 8 of 8
+    fresh meshes (4 Dec 2026, scripts/pinch_rank_agreement.py: grips agreed to 2e-11).
+    Round-off can flip such a decision (a Newton solve stopping one iteration earlier at the
+    loose closing tolerance, a step failing at the edge of its last cut) and the paths part:
+    the frictional, load-stepped solution depends on its path (a CI mesh ended at grip
+    3.657 N on 1 rank vs 3.747 N on 2, 4 Dec 2026).
     Then the steps before that decision must agree (digit forces to 1e-5), both runs must still
     be valid (done, balanced, within the penetration target, every digit at its force), and the
     test is marked xfail, naming the first decision that differs."""

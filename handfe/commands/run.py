@@ -21,8 +21,9 @@ Loading:
            solver.muscle_final_uzawa = "interleaved" (set there; off by default), but
            ends with status "unbalanced" (object vs support 6e-5: FE stalls at a contact
            kink); without them it ends on a penalty contact ~1.2 mm deep; the pinch
-           stalled at 41 % of the load; a run that gives up writes the last balanced load's
-           results, marked partial; docs/grasp.md (README: Grasp status).
+           stalled at 41 % of the load (older code, without the three keys; with them at
+           12.5 %, the thumb off the object); a run that gives up writes the last balanced
+           load's results, marked partial; docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
