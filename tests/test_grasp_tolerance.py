@@ -188,3 +188,52 @@ def test_tight_final_solve_keeps_the_data_of_the_stalled_state():
     events.clear()
     norms[:] = [5e-5]
     assert GraspFE._tighten(scene, stalled=True) and events == []
+
+
+class _Stalled:
+    """Stand-in for the muscles mode's final tight solve: plain Newton fails from a state with
+    a 1e-2 N residual; the active-set Newton then converges (or not) to a new state."""
+
+    def __init__(self, active_ok: bool):
+        self.problem = SimpleNamespace(w=SimpleNamespace(x=SimpleNamespace(
+            array=np.array([1.0]), scatter_forward=lambda: None)))
+        r = {1.0: 1e-2, 2.0: 1e-11, 3.0: 5.0}  # state -> residual norm (N)
+
+        def plain():
+            self.problem.w.x.array[:] = 3.0  # full steps ran away
+            return False, 11, "-9"
+
+        self.solver = SimpleNamespace(atol=1e-9, stall_atol=1e-4, solve=plain,
+                                      continue_after_stall=lambda: None,
+                                      residual_norm=lambda: r[float(self.problem.w.x.array[0])])
+        self.wf = SimpleNamespace(solver=SolverSpec())
+        self.active_ok, self.active_from = active_ok, []
+        self.steps, self.log = [], []
+
+    def say(self, msg):
+        self.log.append(msg)
+
+    def _active_set_solve(self):
+        self.active_from.append(float(self.problem.w.x.array[0]))
+        self.problem.w.x.array[:] = 2.0 if self.active_ok else 3.0
+        return (True, 5, "active set settled in 2 rounds") if self.active_ok else \
+            (False, 7, "active-set round 1: frozen Newton -5")
+
+    _tighten = GraspFE._tighten
+    _residual_norm = GraspFE._residual_norm
+    _set_state = GraspFE._set_state
+
+
+@pytest.mark.parametrize("active_ok", [True, False], ids=["settles", "fails"])
+def test_stalled_final_state_falls_back_to_the_active_set_newton(active_ok):
+    """Where plain Newton fails from the muscles mode's stalled final state, the active-set
+    Newton starts from that state (not from the runaway iterate); its converged state is kept,
+    a failed one gives the stalled state back; the step records the method."""
+    sc = _Stalled(active_ok)
+    assert sc._tighten(stalled=True) is active_ok
+    assert sc.active_from == [1.0]
+    step = sc.steps[-1]
+    assert step["method"] == "active set" and step["newton"] == 11 + (5 if active_ok else 7)
+    assert step["converged"] is active_ok
+    assert sc.problem.w.x.array[0] == (2.0 if active_ok else 1.0)
+    assert step["residual"] == (1e-11 if active_ok else 1e-2)
