@@ -525,7 +525,7 @@ def deformed_area_factor(u):
 
 def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
                       mu: Any = 0.0, k_t: Any = None, u_ref=None,
-                      translation_ref=None, lambda_t=None, frozen_u=None) -> ContactTerms:
+                      translation_ref=None, lambda_t=None) -> ContactTerms:
     """Contact residual contribution for the tissue displacement ``u`` (vector Function, mm),
     test function ``v``, a rigid ``obstacle`` translated by ``translation`` (Constant, mm), on
     the measure ``ds_c`` (e.g. ``ds(tag)``; set its quadrature degree in the metadata).
@@ -536,24 +536,13 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
     k_t: tangential stick stiffness [N/mm^3] (default k_n). u_ref: vector Function, the
     displacement at the stick anchor (previous converged step for incremental friction);
     translation_ref: Constant, the obstacle translation at the anchor. lambda_t: vector
-    Function of tangential Uzawa multipliers [MPa] (augmented friction) or None.
-
-    frozen_u: a displacement (UFL expression of a Function, mm) at which the contact state is
-    frozen: each quadrature point is in contact or not, and sticks or slips, as it does at
-    ``frozen_u``, while the tractions follow ``u`` with that state. The law is then smooth in
-    ``u`` (for an active-set Newton: it equals the semi-smooth law wherever no point changes
-    state between ``frozen_u`` and ``u``)."""
+    Function of tangential Uzawa multipliers [MPa] (augmented friction) or None."""
     ufl = _ufl()
     X = ufl.SpatialCoordinate(extract_unique_domain(u))
     x = X + u
     g, n = obstacle.ufl_gap_normal(x, translation)
     lam = 0.0 if lambda_n is None else lambda_n
-    if frozen_u is None:
-        p = ufl.max_value(lam - k_n * g, 0.0)
-    else:
-        g_f, n_f = obstacle.ufl_gap_normal(X + frozen_u, translation)
-        p_f = ufl.max_value(lam - k_n * g_f, 0.0)
-        p = ufl.conditional(ufl.gt(lam - k_n * g_f, 0.0), lam - k_n * g, 0.0)
+    p = ufl.max_value(lam - k_n * g, 0.0)
     area = deformed_area_factor(u)
     frictionless = isinstance(mu, int | float) and float(mu) == 0.0
     if frictionless:
@@ -566,26 +555,13 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
         Pt = ufl.Identity(len(u)) - ufl.outer(n, n)
         s = Pt * ((u - u_ref) - (translation - translation_ref))
         limit = mu * p
-        if frozen_u is not None:
-            Pt_f = ufl.Identity(len(u)) - ufl.outer(n_f, n_f)
-            s_f = Pt_f * ((frozen_u - u_ref) - (translation - translation_ref))
         if lambda_t is None:
             s_norm = ufl.sqrt(ufl.max_value(ufl.dot(s, s), EPS**2))
-            if frozen_u is None:
-                slip = ufl.gt(kt * s_norm, limit)
-            else:
-                slip = ufl.gt(kt * ufl.sqrt(ufl.max_value(ufl.dot(s_f, s_f), EPS**2)), mu * p_f)
-            tT = ufl.conditional(slip, -limit * s / s_norm, -kt * s)
+            tT = ufl.conditional(ufl.gt(kt * s_norm, limit), -limit * s / s_norm, -kt * s)
         else:
             trial = Pt * lambda_t - kt * s
             t_norm = ufl.sqrt(ufl.max_value(ufl.dot(trial, trial), EPS**2))
-            if frozen_u is None:
-                slip = ufl.gt(t_norm, limit)
-            else:
-                trial_f = Pt_f * lambda_t - kt * s_f
-                slip = ufl.gt(ufl.sqrt(ufl.max_value(ufl.dot(trial_f, trial_f), EPS**2)),
-                              mu * p_f)
-            tT = ufl.conditional(slip, limit * trial / t_norm, trial)
+            tT = ufl.conditional(ufl.gt(t_norm, limit), limit * trial / t_norm, trial)
     residual = -ufl.inner(p * n + tT, v) * area * ds_c
     return ContactTerms(residual=residual, gap=g, normal=n, pressure=p,
                         tangential_traction=tT, area_factor=area, lambda_n=lambda_n)

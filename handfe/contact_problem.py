@@ -27,7 +27,6 @@ from petsc4py import PETSc
 
 from handfe.contact import (
     ContactMetrics,
-    ContactTerms,
     UzawaUpdate,
     contact_metrics,
     friction_anchor_update,
@@ -158,7 +157,6 @@ class RigidContact:
             self.u_ref = None
         self.terms = ufl_contact_terms(problem.u, problem.vu, obstacle, self.translation,
                                        ds(tag), k_n=self.k_n, lambda_n=self.lambda_n, **kw)
-        self._terms_args = (obstacle, ds(tag), kw)
         problem.add_residual(self.terms.residual)
         self.uzawa = UzawaUpdate(self.terms, facets, ds(tag), self.k_n) if augmented else None
         if mu > 0:
@@ -180,15 +178,6 @@ class RigidContact:
         self.last_creep_mm = 0.0
         self.max_penalty_growth = 64.0
         self.history_due = False  # on_step(defer=True) waiting for apply_history()
-
-    def frozen_terms(self, frozen_u) -> ContactTerms:
-        """The contact terms with the contact and stick/slip state of each quadrature point
-        frozen at the displacement ``frozen_u`` (UFL, mm; see :func:`ufl_contact_terms`), with
-        this contact's data (penalty, multipliers, anchors, translation)."""
-        obstacle, ds_c, kw = self._terms_args
-        return ufl_contact_terms(self.problem.u, self.problem.vu, obstacle, self.translation,
-                                 ds_c, k_n=self.k_n, lambda_n=self.lambda_n, frozen_u=frozen_u,
-                                 **kw)
 
     @property
     def k_t(self) -> float:

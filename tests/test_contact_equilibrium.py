@@ -45,7 +45,7 @@ def _block(comm):
 
 
 def _scene(mu: float, comm, pen_tol: float = PEN_TOL, disc: str = "p2",
-           quadrature: str = "gauss", augmented_friction: bool = False):
+           quadrature: str = "gauss"):
     from handfe.contact import HalfSpace
     from handfe.contact_problem import RigidContact
     from handfe.materials import NeoHookean
@@ -57,7 +57,7 @@ def _scene(mu: float, comm, pen_tol: float = PEN_TOL, disc: str = "p2",
     platen = prob.fix(top)
     plate = HalfSpace(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0))
     contact = RigidContact(prob, plate, ft, 1, mu=mu, penetration_tol_mm=pen_tol,
-                           quadrature=quadrature, augmented_friction=augmented_friction)
+                           quadrature=quadrature)
     return prob, ft, top, platen, contact
 
 
@@ -211,75 +211,3 @@ def test_loose_newton_between_uzawa_updates_ends_converged():
         out[loose] = (res.total_newton_iterations, prob.reaction(top)[2])
     assert out[1e-4][0] < out[None][0]
     assert out[1e-4][1] == pytest.approx(out[None][1], rel=1e-6)
-
-
-@pytest.mark.parametrize("augmented_friction", [False, True], ids=["penalty", "augmented"])
-def test_frozen_contact_state_is_the_law_at_the_frozen_state(augmented_friction):
-    """``RigidContact.frozen_terms`` (the active-set Newton of the grasp's final solve): frozen
-    at the current state, its residual and tangent are the semi-smooth law's; frozen at
-    another state, a point that changed state keeps the frozen one (a separated point frozen
-    in contact pulls: negative pressure)."""
-    import ufl
-    from dolfinx import fem
-    from dolfinx.fem import petsc as fem_petsc
-    from petsc4py import PETSc
-
-    comm = MPI.COMM_WORLD
-    prob, ft, top, platen, contact = _scene(0.74, comm,
-                                            augmented_friction=augmented_friction)
-    _load(prob, platen, contact, defer_history=True)
-    u_f = fem.Function(prob.W)
-    u_f.x.array[:] = prob.w.x.array
-    u_f.x.scatter_forward()
-    frozen = contact.frozen_terms(u_f)
-    du = ufl.TrialFunction(prob.W)
-
-    def assembled(terms):
-        b = fem_petsc.assemble_vector(fem.form(terms.residual))
-        b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        A = fem_petsc.assemble_matrix(fem.form(ufl.derivative(terms.residual, prob.w, du)))
-        A.assemble()
-        return b, A
-
-    (b0, A0), (b1, A1) = assembled(contact.terms), assembled(frozen)
-    assert b0.norm() > 0.1  # nodal contact forces (N) of the ~2 N the plate carries
-    b1.axpy(-1.0, b0)
-    A1.axpy(-1.0, A0)
-    assert b1.norm() <= 1e-12 * b0.norm()
-    assert A1.norm() <= 1e-12 * A0.norm()
-    # lift the block off the plate: the true law lets go, the frozen one pulls it back down
-    prob.w.x.array[:] = u_f.x.array + np.tile([0.0, 0.0, 0.05], len(u_f.x.array) // 3)
-    press = fem.form(frozen.pressure * ufl.ds(domain=prob.mesh, subdomain_data=ft)(1))
-    free = fem.form(contact.terms.pressure * ufl.ds(domain=prob.mesh, subdomain_data=ft)(1))
-    assert comm.allreduce(fem.assemble_scalar(free), op=MPI.SUM) == 0.0
-    assert comm.allreduce(fem.assemble_scalar(press), op=MPI.SUM) < 0.0
-
-
-@pytest.mark.mpi
-def test_active_set_newton_reaches_the_semismooth_solution():
-    """``ActiveSetNewton`` (the grasp's final solve where plain Newton stalls at a contact
-    kink): from a state 5 % short of the balanced pressed-and-slid block (stick and slip
-    points, augmented friction), its rounds of frozen-state Newton end at the state plain
-    Newton balances, on the true (semi-smooth) residual."""
-    from handfe.grasp.fe import ActiveSetNewton, TwoFormNewton
-
-    comm = MPI.COMM_WORLD
-    prob, ft, top, platen, contact = _scene(0.74, comm, augmented_friction=True)
-    _load(prob, platen, contact, defer_history=True)
-    plain = TwoFormNewton(prob, atol=1e-10)
-    ok, _, reason = plain.solve()
-    assert ok, reason
-    w_ref = prob.w.x.array.copy()
-    assert _obstacle_force(prob, ft, contact)[2] > 1.0
-    active = ActiveSetNewton(plain, contact)
-    prob.w.x.array[:] = 0.95 * w_ref
-    prob.w.x.scatter_forward()
-    assert plain.residual_norm() > 1e-2
-    ok, its, reason = active.solve()
-    assert ok, reason
-    assert plain.residual_norm() <= 1e-10
-    assert 1 <= len(active.rounds) <= 6 and its > 0
-    dw = comm.allreduce(float(np.abs(prob.w.x.array - w_ref).max()), op=MPI.MAX)
-    assert dw <= 1e-8 * comm.allreduce(float(np.abs(w_ref).max()), op=MPI.MAX)
-    active.destroy()
-    plain.destroy()

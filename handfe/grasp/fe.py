@@ -11,7 +11,6 @@ node R is the force the bone exerts on the tissue.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -222,13 +221,12 @@ class GraspProblem:
 
 class TwoFormNewton:
     """SNES Newton (MUMPS LU, backtracking) on R = R_tissue + R_contact with the two forms
-    compiled separately; Dirichlet rows from ``problem.bcs``. ``extra_residual`` replaces
-    ``problem.extra_residual`` (the contact terms) as R_contact."""
+    compiled separately; Dirichlet rows from ``problem.bcs``."""
 
     _count = 0
 
     def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
-                 max_it: int = 25, guard_keep: float = 0.0, extra_residual: list | None = None):
+                 max_it: int = 25, guard_keep: float = 0.0):
         self.problem = problem
         #: shortens Newton steps that would take a cell below guard_keep x its J (0 = off)
         self.guard = InversionGuard(problem.w, mixed=True, keep=guard_keep) \
@@ -236,7 +234,7 @@ class TwoFormNewton:
         W = problem.W
         du = ufl.TrialFunction(W)
         R1 = problem.internal_residual
-        R2 = sum(problem.extra_residual if extra_residual is None else extra_residual)
+        R2 = sum(problem.extra_residual)
         self.L = [fem.form(R1), fem.form(R2)]
         J1 = getattr(problem, "internal_jacobian", None)
         if J1 is None:
@@ -309,16 +307,6 @@ class TwoFormNewton:
         A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
         fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
-
-    def residual_norm(self) -> float:
-        """Norm of the Newton residual (Dirichlet rows included) at the current state, N."""
-        x = self.problem.w.vector.copy()
-        b = x.duplicate()
-        self._residual(None, x, b)
-        n = b.norm()
-        x.destroy()
-        b.destroy()
-        return float(n)
 
     def set_atol(self, atol: float) -> None:
         """Absolute tolerance (N, residual norm) of the later solves, both line searches."""
@@ -396,65 +384,6 @@ class TwoFormNewton:
     def destroy(self) -> None:
         for o in (*self._snes.values(), self.A, self.b, self.x, self._work):
             o.destroy()
-
-
-class ActiveSetNewton:
-    """Active-set Newton for the contact problem of ``solver`` (a :class:`TwoFormNewton`):
-    each round freezes every contact quadrature point's state (in contact or not, sticking or
-    slipping) at the state the round starts from and solves that smooth problem by Newton
-    (:meth:`handfe.contact_problem.RigidContact.frozen_terms`: quadratic convergence, no kink
-    to cross); then the true residual decides: below ``solver.atol`` it is done, otherwise the
-    points that changed state start the next round (a primal-dual active-set iteration).
-
-    Where plain Newton stalls at a kink of the semi-smooth law (backtracking stops, full steps
-    run away: the muscles mode's final state, docs/grasp.md) the rounds converge. One more
-    pair of compiled contact forms, built here."""
-
-    def __init__(self, solver: TwoFormNewton, contact, *, max_it: int = 25,
-                 guard_keep: float = 0.0):
-        problem = solver.problem
-        self.main = solver
-        self.w_frozen = fem.Function(problem.W, name="frozen_state")
-        mixed = problem.u is not problem.w
-        terms = contact.frozen_terms(ufl.split(self.w_frozen)[0] if mixed else self.w_frozen)
-        extra = [terms.residual if r is contact.terms.residual else r
-                 for r in problem.extra_residual]
-        self.frozen = TwoFormNewton(problem, max_it=max_it, extra_residual=extra,
-                                    guard_keep=guard_keep)
-        self.rounds: list[dict] = []  # per round of the last solve: Newton its, residual N
-
-    def solve(self, max_rounds: int = 6, say: Callable[[str], None] | None = None
-              ) -> tuple[bool, int, str]:
-        """Rounds from the current state until the true residual is <= ``solver.atol``
-        (converged) or, after ``max_rounds``, <= ``solver.stall_atol`` (accepted, counted as
-        a stall of ``solver``). Returns (converged, Newton iterations, reason); on failure
-        the state is the last round's."""
-        p, main = self.main.problem, self.main
-        self.frozen.set_atol(main.atol)
-        self.rounds = []
-        its, r = 0, main.residual_norm()
-        for k in range(1, max_rounds + 1):
-            self.w_frozen.x.array[:] = p.w.x.array
-            self.w_frozen.x.scatter_forward()
-            ok, n, reason = self.frozen.solve()
-            its += n
-            main.iterations += n
-            if not ok:
-                return False, its, f"active-set round {k}: frozen Newton {reason}"
-            r = main.residual_norm()
-            self.rounds.append({"newton": n, "residual_N": r})
-            if say is not None:
-                say(f"    active-set round {k}: frozen Newton {n} iterations, residual "
-                    f"{r:.1e} N")
-            if r <= main.atol:
-                return True, its, f"active set settled in {k} rounds"
-        if r <= main.stall_atol:
-            main.stalls += 1
-            return True, its, f"active set still changing after {max_rounds} rounds at {r:.1e} N"
-        return False, its, f"active set still changing after {max_rounds} rounds ({r:.1e} N)"
-
-    def destroy(self) -> None:
-        self.frozen.destroy()
 
 
 class BoneBC:

@@ -843,7 +843,13 @@ class GraspFE:
 
     def _residual_norm(self) -> float:
         """Norm of the Newton residual (Dirichlet rows included) at the current state, N."""
-        return self.solver.residual_norm()
+        x = self.problem.w.vector.copy()
+        b = x.duplicate()
+        self.solver._residual(None, x, b)
+        n = b.norm()
+        x.destroy()
+        b.destroy()
+        return float(n)
 
     def _norm(self, a: np.ndarray) -> float:
         """Global 2-norm of a nodal array (ghosts counted on both ranks: fine for ratios)."""
@@ -1230,36 +1236,14 @@ class GraspFE:
             if res is not None:
                 ok, its, reason = res
                 its += its0
-        how = "newton"
-        if not ok and stalled:
-            # plain Newton stalls at a kink of the contact law (docs/grasp.md, twentieth
-            # session): rounds of Newton with the contact state frozen
-            self.say(f"  tight solve from {r0:.1e} N: Newton failed ({reason}, {its} "
-                     "iterations); active-set Newton from the stalled state")
-            self._set_state(w0)
-            ok, its1, reason = self._active_set_solve()
-            its += its1
-            how = "active set"
         if not ok:
             self._set_state(w0)
         self.steps.append({"step": "tight solve", "fraction": 1.0, "newton": its,
-                           "residual": self._residual_norm(), "converged": bool(ok),
-                           "method": how})
+                           "residual": self._residual_norm(), "converged": bool(ok)})
         self.say(f"  tight solve from {r0:.1e} N: " + (
-            f"converged ({its} iterations" + (f", {how}: {reason})" if how != "newton" else ")")
-            if ok else
+            f"converged ({its} iterations)" if ok else
             f"failed ({reason}, {its} iterations): the state keeps its {r0:.1e} N residual"))
         return bool(ok)
-
-    def _active_set_solve(self) -> tuple[bool, int, str]:
-        """:class:`~handfe.grasp.fe.ActiveSetNewton` from the current state (its forms are
-        compiled at the first call)."""
-        if getattr(self, "_active_set", None) is None:
-            from handfe.grasp.fe import ActiveSetNewton
-
-            self._active_set = ActiveSetNewton(self.solver, self.contact,
-                                               guard_keep=self.wf.solver.inversion_guard)
-        return self._active_set.solve(say=self.say)
 
     def _close_digits(self) -> None:
         """Each digit whose contact force is below ``digit_force_N`` closes its released joints
