@@ -22,7 +22,12 @@ from handfe.grasp.mechanics import (
     pre_close,
     released_joints,
 )
-from handfe.grasp.scene import DigitStepLimiter, damped_newton_step, secant_closing_increment
+from handfe.grasp.scene import (
+    DigitStepLimiter,
+    balance_problems,
+    damped_newton_step,
+    secant_closing_increment,
+)
 from handfe.kinematics import Pose
 from handfe.paths import REPO_ROOT
 
@@ -1232,3 +1237,21 @@ def test_friction_use_names_a_digit_off_the_object():
     assert msg == ("contact forces (mu = 0.74): thumb 0 N (off the object), "
                    "index 5.00 N, tangential/normal 0.72 (at the friction limit)")
 
+
+
+def test_balance_problems_name_what_is_off():
+    """A finished run is "done" only if the object force meets the support reactions (1e-6)
+    and, muscle-driven, every released joint off its limits balances to torque_rtol (run G of
+    the coarse cylinder: equilibrium 1.7e-14 after the tight solve, torque residual 2.1e-3)."""
+    ok = {"equilibrium_relative_error": 1e-9, "max_relative_torque_residual": 5e-4}
+    assert balance_problems(ok, "muscles", 1e-3) == []
+    run_g = {"equilibrium_relative_error": 1.7e-14, "max_relative_torque_residual": 2.1e-3}
+    (msg,) = balance_problems(run_g, "muscles", 1e-3)
+    assert "torque residual 0.0021" in msg and "solver.torque_rtol" in msg
+    # the angles mode's joint torques are reactions, not a balance
+    assert balance_problems(run_g, "angles", 1e-3) == []
+    run_f = {"equilibrium_relative_error": 6.1e-5, "max_relative_torque_residual": 9.5e-4}
+    (msg,) = balance_problems(run_f, "muscles", 1e-3)
+    assert "object force vs support reactions 6.1e-05" in msg
+    assert len(balance_problems({"equilibrium_relative_error": float("nan")}, "angles",
+                                1e-3)) == 1

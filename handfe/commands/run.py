@@ -19,10 +19,12 @@ Loading:
            the full EMG load to a relative torque residual of 5e-4 with the pads within
            0.01 mm, with solver.tangent_predictor, solver.inversion_guard and
            solver.muscle_final_uzawa = "interleaved" (set there; off by default), but
-           ends with status "unbalanced" (object vs support 6e-5: FE stalls at a contact
-           kink); without them it ends on a penalty contact ~1.2 mm deep; the pinch
-           stalled at 41 % of the load (older code, without the three keys; with them at
-           12.5 %, the thumb off the object); a run that gives up writes the last balanced
+           ends "unbalanced" in three runs of four (object vs support 6e-5: the tight
+           solve of the stalled final state diverges); in the fourth it converged, but the
+           torque residual rose to 2e-3 (> torque_rtol), now "unbalanced" too; without
+           them it ends on a penalty contact ~1.2 mm deep; the pinch stalled at 41 % of
+           the load (older code, without the three keys; with them at 12.5 %, the thumb
+           off the object); a run that gives up writes the last balanced
            load's results, marked partial; docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
@@ -47,8 +49,10 @@ Writes into --out (rank 0):
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)
 Exit status: 0 for status "done"; 1 for "unbalanced" (the results are written, but the
-object's force and the support reactions differ by more than 1e-6 relative: the last Newton
-solve stopped at an accepted stall; summary.json final_residual_N says how far); 2 for a failed
+object's force and the support reactions differ by more than 1e-6 relative - the last Newton
+solve stopped at an accepted stall; summary.json final_residual_N says how far - or, muscles
+mode, a released joint's relative torque residual is above solver.torque_rtol;
+summary.json balance_problems says which); 2 for a failed
 run, which writes summary.json with status "failed", the failed stage and the error (a
 muscles run also writes the last balanced load's results, marked "partial").
 
