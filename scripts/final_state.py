@@ -1,0 +1,213 @@
+"""Dump the muscles mode's final state, and replay the final solve from the dump.
+
+A muscles run of the coarse cylinder takes ~30 min to reach its final tight solve; experiments
+on that solve (docs/grasp.md, twentieth session) need its state, not the run. ``dump`` runs a
+workflow and, when the final tight solve starts, writes ``DIR/dump<rank>.pkl`` (the scene's
+snapshot: state, bone motions, contact multipliers, stick anchors, penalty, stabilisation
+modulus, joint angles and torque data), every nodal/cell array keyed by its dof coordinates,
+because the mesh partition differs between runs. ``replay`` builds the same scene (mesh,
+forms: ~20 s), restores the dump on any partition and runs one of:
+
+- ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``), then the
+  outputs to ``DIR/replay`` (``summary.json`` status, equilibrium, torque residuals);
+- ``derivatives``: the Newton direction d at the state, the residual norm along -d, and
+  forward / backward finite differences of the tissue and contact forms along d against the
+  assembled tangent (a kink of the law shows as forward != backward);
+- ``balance``: the tight solve, then torque Newton iterations with tight FE solves (no
+  grip-scaled stall tolerance), then the tight solve again.
+
+    mpirun -n 2 .venv/bin/python scripts/final_state.py dump workflows/cylindrical_muscles.toml D
+    mpirun -n 2 .venv/bin/python scripts/final_state.py replay workflows/cylindrical_muscles.toml \
+        D --mode derivatives
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from handfe.grasp import scene as S
+
+#: the scene attributes the torques and the torque Newton need besides the snapshot
+EXTRA = ("tau_muscle", "muscle_load", "force_target", "coupled", "at_limit", "closing_mu")
+#: snapshot arrays (the contact ones live under snapshot["contact"])
+STATE = ("w", "ubc", "mu0")
+CONTACT = ("lambda_n", "lambda_t", "u_ref")
+
+
+def dof_keys(V) -> np.ndarray:
+    """(x, y, z, sub-space, component) of every local entry of a function space's arrays
+    (ghosts included), rounded: the same entry has the same key on any partition."""
+    mixed = V.ufl_element().family() == "Mixed"
+    im = V.dofmap.index_map
+    keys = np.full(((im.size_local + im.num_ghosts) * V.dofmap.index_map_bs, 5), np.nan)
+    parts = [V.sub(i).collapse() for i in range(V.num_sub_spaces)] if mixed else [(V, None)]
+    for i, (Vi, m) in enumerate(parts):
+        x = Vi.tabulate_dof_coordinates()
+        bs = Vi.dofmap.index_map_bs
+        k = np.zeros((x.shape[0] * bs, 5))
+        for c in range(bs):
+            k[c::bs, :3], k[c::bs, 4] = x, c
+        k[:, 3] = i
+        if m is None:
+            keys = k
+        else:
+            keys[np.asarray(m)] = k
+    return np.round(keys, 6)
+
+
+def _spaces(scene) -> dict:
+    c = scene.contact
+    out = {"w": scene.problem.W, "ubc": scene.bc.ubc.function_space,
+           "mu0": scene.problem.mu0.function_space}
+    out.update({n: getattr(c, n).function_space for n in CONTACT if getattr(c, n) is not None})
+    return out
+
+
+def dump(workflow: str, folder: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    tighten = S.GraspFE._tighten
+
+    def patched(self, *, stalled: bool = False) -> bool:
+        if stalled and not getattr(self, "_dumped", False):
+            self._dumped = True
+            data = {"snap": self._snapshot(),
+                    "extra": {k: getattr(self, k, None) for k in EXTRA},
+                    "keys": {k: dof_keys(V) for k, V in _spaces(self).items()}}
+            (folder / f"dump{MPI.COMM_WORLD.rank}.pkl").write_bytes(pickle.dumps(data))
+            self.say(f"final state dumped to {folder}")
+        return tighten(self, stalled=stalled)
+
+    S.GraspFE._tighten = patched
+    S.run_workflow(workflow, out_dir=folder / "run")
+
+
+def restore(scene, folder: Path) -> None:
+    """Set ``scene`` to the dumped state (any partition)."""
+    dumps = [pickle.loads(f.read_bytes()) for f in sorted(folder.glob("dump*.pkl"))]
+    if not dumps:
+        raise SystemExit(f"no dump*.pkl in {folder}: run `dump` first")
+    snap = dict(dumps[0]["snap"])
+    snap["contact"] = dict(snap["contact"])
+    for name, V in _spaces(scene).items():
+        table: dict = {}
+        for d in dumps:
+            arr = d["snap"][name] if name in STATE else d["snap"]["contact"][name]
+            table.update(zip(map(tuple, d["keys"][name]), arr, strict=True))
+        vals = np.array([table[k] for k in map(tuple, dof_keys(V))])
+        (snap if name in STATE else snap["contact"])[name] = vals
+    snap["dw"], snap["dbc"] = None, None  # the secant predictor's data (partition-bound)
+    scene._restore(snap)
+    for k, v in dumps[0]["extra"].items():
+        setattr(scene, k, v)
+
+
+def derivatives(scene) -> None:
+    from dolfinx.fem import petsc as fem_petsc
+    from petsc4py import PETSc
+
+    sol, prob, say = scene.solver, scene.problem, scene.say
+    x = prob.w.vector.copy()
+    b = x.duplicate()
+    sol._residual(None, x, b)
+    sol._jacobian(None, x, sol.A, sol.A)
+    ksp = PETSc.KSP().create(prob.comm)
+    ksp.setOperators(sol.A)
+    ksp.setType("preonly")
+    ksp.getPC().setType("lu")
+    ksp.getPC().setFactorSolverType("mumps")
+    d = x.duplicate()
+    ksp.solve(b, d)
+    say(f"|R| {b.norm():.3e} N, Newton direction |d| {d.norm():.3e}, max "
+        f"{d.norm(PETSc.NormType.INFINITY):.3e}")
+    for t in (1.0, 0.5, 0.1, 1e-2, 1e-3):
+        y = x.copy()
+        y.axpy(-t, d)
+        r = x.duplicate()
+        sol._residual(None, y, r)
+        say(f"  |R(w - {t:g} d)| / ((1 - {t:g}) |R|) = {r.norm() / ((1 - t) * b.norm()):.4g}"
+            if t < 1 else f"  |R(w - d)| = {r.norm():.3e} N")
+
+    def vec(i: int, y):
+        y.copy(prob.w.vector)
+        prob.w.x.scatter_forward()
+        prob.update(tangent=False)
+        v = fem_petsc.assemble_vector(sol.L[i])
+        v.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        return v
+
+    for i, name in enumerate(("tissue", "contact")):
+        x.copy(prob.w.vector)
+        prob.w.x.scatter_forward()
+        prob.update()
+        A = fem_petsc.assemble_matrix(sol.a[i])
+        A.assemble()
+        Ad = x.duplicate()
+        A.mult(d, Ad)
+        for eps in (1e-4, 1e-6):
+            yp, ym = x.copy(), x.copy()
+            yp.axpy(eps, d)
+            ym.axpy(-eps, d)
+            v0, vp, vm = vec(i, x), vec(i, yp), vec(i, ym)
+            fwd, bwd = (vp - v0) * (1.0 / eps), (v0 - vm) * (1.0 / eps)
+            say(f"  {name} form, eps {eps:g}: |A d| {Ad.norm():.3e}, |forward - A d| "
+                f"{(fwd - Ad).norm():.3e}, |backward - A d| {(bwd - Ad).norm():.3e}")
+    x.copy(prob.w.vector)
+    prob.w.x.scatter_forward()
+
+
+def balance(scene) -> None:
+    scene._tighten(stalled=True)
+    scene.say(f"after the tight solve: largest relative torque residual "
+              f"{np.where(scene.at_limit, 0.0, scene.torques()['relative']).max():.2e}")
+    scene._stall_base = scene.solver.stall_atol
+    scene._scale_stall_to_grip = lambda: None  # FE solves to the tight stall tolerance
+    with scene._friction_history_per_load():
+        ok, why = scene._balance(scene.wf.solver.torque_rtol, label="final, tight FE solves")
+    scene.say(f"torque balance with tight FE solves: {ok} ({why})")
+    scene._tighten(stalled=True)
+
+
+def replay(workflow: str, folder: Path, mode: str) -> None:
+    def solve_muscles(self) -> None:
+        restore(self, folder)
+        t0 = time.perf_counter()
+        self.say(f"restored the dump: residual {self._residual_norm():.3e} N")
+        {"tighten": lambda s: s._tighten(stalled=True), "derivatives": derivatives,
+         "balance": balance}[mode](self)
+        self.say(f"{mode}: {time.perf_counter() - t0:.1f} s, residual "
+                 f"{self._residual_norm():.3e} N")
+        self.digit_force_N = self.digit_forces()
+        self.torque = self.torques()
+
+    S.GraspFE.solve_muscles = solve_muscles
+    r = S.run_workflow(workflow, out_dir=folder / f"replay-{mode}")
+    if MPI.COMM_WORLD.rank == 0:
+        s = r.summary
+        print(f"status {s.get('status')}, equilibrium {s.get('equilibrium_relative_error'):.2g}, "
+              f"torque residual {s.get('max_relative_torque_residual'):.2g}, grip "
+              f"{s.get('grip_force_N'):.2f} N")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("action", choices=("dump", "replay"))
+    ap.add_argument("workflow", help="a muscles-mode workflow TOML")
+    ap.add_argument("folder", type=Path, help="where the dump is (written by dump)")
+    ap.add_argument("--mode", choices=("tighten", "derivatives", "balance"), default="tighten",
+                    help="replay: what to run from the dumped state (default tighten)")
+    a = ap.parse_args()
+    if a.action == "dump":
+        dump(a.workflow, a.folder)
+    else:
+        replay(a.workflow, a.folder, a.mode)
+
+
+if __name__ == "__main__":
+    main()
