@@ -8,11 +8,15 @@ modulus, joint angles and torque data), every nodal/cell array keyed by its dof 
 because the mesh partition differs between runs. ``replay`` builds the same scene (mesh,
 forms: ~20 s), restores the dump on any partition and runs one of:
 
-- ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``), then the
-  outputs to ``DIR/replay`` (``summary.json`` status, equilibrium, torque residuals);
+- ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``); every mode
+  then writes the outputs to ``DIR/replay-MODE`` (``summary.json`` status, equilibrium, torque
+  residuals);
 - ``derivatives``: the Newton direction d at the state, the residual norm along -d, and
   forward / backward finite differences of the tissue and contact forms along d against the
-  assembled tangent (a kink of the law shows as forward != backward);
+  assembled tangent (a kink of the law shows as forward != backward), and where d is large;
+- ``cone``: the skin area whose contact quadrature points sit within a tolerance of the
+  normal-contact switch (lambda_n - k_n g = 0) or of the Coulomb cone (|trial| = mu p);
+- ``linesearch``: the tight solve with PETSc's l2, cp and nleqerr line searches;
 - ``balance``: the tight solve, then torque Newton iterations with tight FE solves (no
   grip-scaled stall tolerance), then the tight solve again.
 
@@ -159,6 +163,53 @@ def derivatives(scene) -> None:
                 f"{(fwd - Ad).norm():.3e}, |backward - A d| {(bwd - Ad).norm():.3e}")
     x.copy(prob.w.vector)
     prob.w.x.scatter_forward()
+    n = d.getLocalSize()
+    for i, name in enumerate(("displacement", "pressure")):
+        Vi, m = prob.W.sub(i).collapse()
+        m = np.asarray(m)
+        m = m[m < n]
+        v = d.getArray()[m]
+        bs = Vi.dofmap.index_map_bs
+        at = Vi.tabulate_dof_coordinates()[int(np.abs(v).argmax()) // bs] if len(v) else None
+        big = int(np.count_nonzero(np.abs(v) > 0.1 * np.abs(v).max(initial=0.0)))
+        print(f"rank {prob.comm.rank}: d {name} max {np.abs(v).max(initial=0.0):.3e} at {at}, "
+              f"{big} entries above 10 % of it", flush=True)
+
+
+def cone(scene) -> None:
+    import ufl
+    from dolfinx import fem
+
+    c, u = scene.contact, scene.problem.u
+    T = c.terms
+    arg = c.lambda_n - c.k_n * T.gap
+    Pt = ufl.Identity(3) - ufl.outer(T.normal, T.normal)
+    slip = Pt * ((u - c.u_ref) - (c.translation - c.translation_ref))
+    trial = Pt * c.lambda_t - c._k_t * slip
+    off = abs(ufl.sqrt(ufl.max_value(ufl.dot(trial, trial), 1e-24)) - c._mu_c * T.pressure)
+    ds = ufl.Measure("ds", domain=scene.problem.mesh, subdomain_data=scene.skin_tags,
+                     metadata=scene.problem.ds_metadata)(1)
+
+    def area(expr) -> float:
+        return scene.problem.comm.allreduce(fem.assemble_scalar(fem.form(expr * ds)),
+                                            op=MPI.SUM)
+
+    for tol in (1e-14, 1e-12, 1e-10, 1e-8):
+        a = area(ufl.conditional(ufl.le(abs(arg), tol), 1.0, 0.0))
+        b = area(ufl.conditional(ufl.And(ufl.le(off, tol), ufl.gt(T.pressure, 0.0)), 1.0, 0.0))
+        scene.say(f"  tol {tol:g} MPa: area at the contact switch {a:.3e} mm2, on the Coulomb "
+                  f"cone {b:.3e} mm2 (skin {area(1.0):.0f} mm2)")
+
+
+def linesearch(scene) -> None:
+    snap, sol = scene._snapshot(), scene.solver
+    for ls in ("l2", "cp", "nleqerr"):
+        scene._restore(snap)
+        sol._snes[ls] = sol._make_snes(ls, 1e-8, 1e-9, 40)
+        ok, its, reason = sol.solve(ls)
+        scene.say(f"  line search {ls}: converged {ok}, {its} iterations ({reason}); residuals "
+                  + " ".join(f"{h:.1e}" for h in sol.history))
+    scene._restore(snap)
 
 
 def balance(scene) -> None:
@@ -179,7 +230,7 @@ def replay(workflow: str, folder: Path, mode: str) -> None:
         t0 = time.perf_counter()
         self.say(f"restored the dump: residual {self._residual_norm():.3e} N")
         {"tighten": lambda s: s._tighten(stalled=True), "derivatives": derivatives,
-         "balance": balance}[mode](self)
+         "cone": cone, "linesearch": linesearch, "balance": balance}[mode](self)
         self.say(f"{mode}: {time.perf_counter() - t0:.1f} s, residual "
                  f"{self._residual_norm():.3e} N")
         self.digit_force_N = self.digit_forces()
@@ -189,9 +240,9 @@ def replay(workflow: str, folder: Path, mode: str) -> None:
     r = S.run_workflow(workflow, out_dir=folder / f"replay-{mode}")
     if MPI.COMM_WORLD.rank == 0:
         s = r.summary
-        print(f"status {s.get('status')}, equilibrium {s.get('equilibrium_relative_error'):.2g}, "
-              f"torque residual {s.get('max_relative_torque_residual'):.2g}, grip "
-              f"{s.get('grip_force_N'):.2f} N")
+        print(f"status {s.get('status')}, equilibrium {s.get('equilibrium_relative_error')}, "
+              f"torque residual {s.get('max_relative_torque_residual')}, grip "
+              f"{s.get('grip_force_N')} N")
 
 
 def main() -> None:
@@ -200,7 +251,8 @@ def main() -> None:
     ap.add_argument("action", choices=("dump", "replay"))
     ap.add_argument("workflow", help="a muscles-mode workflow TOML")
     ap.add_argument("folder", type=Path, help="where the dump is (written by dump)")
-    ap.add_argument("--mode", choices=("tighten", "derivatives", "balance"), default="tighten",
+    ap.add_argument("--mode", default="tighten",
+                    choices=("tighten", "derivatives", "cone", "linesearch", "balance"),
                     help="replay: what to run from the dumped state (default tighten)")
     a = ap.parse_args()
     if a.action == "dump":

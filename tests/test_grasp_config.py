@@ -1238,7 +1238,6 @@ def test_friction_use_names_a_digit_off_the_object():
                    "index 5.00 N, tangential/normal 0.72 (at the friction limit)")
 
 
-
 def test_balance_problems_name_what_is_off():
     """A finished run is "done" only if the object force meets the support reactions (1e-6)
     and, muscle-driven, every released joint off its limits balances to torque_rtol (run G of

@@ -19,8 +19,8 @@ Loading:
            the full EMG load to a relative torque residual of 5e-4 with the pads within
            0.01 mm, with solver.tangent_predictor, solver.inversion_guard and
            solver.muscle_final_uzawa = "interleaved" (set there; off by default), but
-           ends "unbalanced" in three runs of four (object vs support 6e-5: the tight
-           solve of the stalled final state diverges); in the fourth it converged, but the
+           ends "unbalanced" in four runs of five (object vs support 6e-5: the tight
+           solve of the stalled final state diverges); in the fifth it converged, but the
            torque residual rose to 2e-3 (> torque_rtol), now "unbalanced" too; without
            them it ends on a penalty contact ~1.2 mm deep; the pinch stalled at 41 % of
            the load (older code, without the three keys; with them at 12.5 %, the thumb
