@@ -63,6 +63,15 @@ multiplier, so the stick creep ``|t_T - lambda_t| / k_t`` goes to zero with the 
 soft stick spring (a smooth Newton) no longer means soft friction. ``lambda_t = None`` is the
 penalty law above.
 
+Both laws have a kink at the Coulomb cone (|v| = mu p): the tangent jumps from k_t to the slip
+branch's, and Newton can cycle between the two sides. ``friction_smoothing`` delta (0 = the
+laws above) rounds the cone over the band (1 - delta) mu p < |v| < (1 + delta) mu p::
+
+    |t_T| = |v| - (|v| - (1 - delta) mu p)^2 / (4 delta mu p)      direction v / |v|
+
+(:func:`smoothed_cone`), which joins stick and slip with a continuous tangent. It never exceeds
+mu p, equals the law above outside the band, and is at most delta/4 x mu p below it inside.
+
 All tractions are true (Cauchy) tractions per *deformed* area: the residual is integrated over
 the reference facets with Nanson's factor ``da = J |F^-T N| dA``, so the contact force is
 ``int p n da`` exactly as :func:`contact_metrics` reports it.
@@ -523,9 +532,27 @@ def deformed_area_factor(u):
     return ufl.sqrt(ufl.dot(cof, cof))
 
 
+def smoothed_cone(trial, limit, smoothing: Any = 0.0):
+    """Traction of the return mapping of ``trial`` (vector) onto the disc of radius ``limit``
+    (= mu p, MPa), with the cone rounded over ``smoothing`` delta (see the module docstring;
+    the Python float 0 gives the sharp law). UFL in, UFL out."""
+    ufl = _ufl()
+    t = ufl.sqrt(ufl.max_value(ufl.dot(trial, trial), EPS**2))
+    slip = limit * trial / t
+    if isinstance(smoothing, int | float) and float(smoothing) == 0.0:
+        return ufl.conditional(ufl.gt(t, limit), slip, trial)
+    lo = (1.0 - smoothing) * limit
+    # the blend is only taken for lo < t <= hi, where limit > 0; the guard keeps the unused
+    # branch finite where limit = 0
+    blend = (t - (t - lo) ** 2 / ufl.max_value(4.0 * smoothing * limit, EPS)) * trial / t
+    return ufl.conditional(ufl.gt(t, (1.0 + smoothing) * limit), slip,
+                           ufl.conditional(ufl.gt(t, lo), blend, trial))
+
+
 def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
                       mu: Any = 0.0, k_t: Any = None, u_ref=None,
-                      translation_ref=None, lambda_t=None) -> ContactTerms:
+                      translation_ref=None, lambda_t=None,
+                      friction_smoothing: Any = 0.0) -> ContactTerms:
     """Contact residual contribution for the tissue displacement ``u`` (vector Function, mm),
     test function ``v``, a rigid ``obstacle`` translated by ``translation`` (Constant, mm), on
     the measure ``ds_c`` (e.g. ``ds(tag)``; set its quadrature degree in the metadata).
@@ -536,7 +563,9 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
     k_t: tangential stick stiffness [N/mm^3] (default k_n). u_ref: vector Function, the
     displacement at the stick anchor (previous converged step for incremental friction);
     translation_ref: Constant, the obstacle translation at the anchor. lambda_t: vector
-    Function of tangential Uzawa multipliers [MPa] (augmented friction) or None."""
+    Function of tangential Uzawa multipliers [MPa] (augmented friction) or None.
+    friction_smoothing: relative width delta of the rounded Coulomb cone (float or Constant;
+    the Python float 0 = sharp cone; :func:`smoothed_cone`)."""
     ufl = _ufl()
     X = ufl.SpatialCoordinate(extract_unique_domain(u))
     x = X + u
@@ -555,13 +584,8 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
         Pt = ufl.Identity(len(u)) - ufl.outer(n, n)
         s = Pt * ((u - u_ref) - (translation - translation_ref))
         limit = mu * p
-        if lambda_t is None:
-            s_norm = ufl.sqrt(ufl.max_value(ufl.dot(s, s), EPS**2))
-            tT = ufl.conditional(ufl.gt(kt * s_norm, limit), -limit * s / s_norm, -kt * s)
-        else:
-            trial = Pt * lambda_t - kt * s
-            t_norm = ufl.sqrt(ufl.max_value(ufl.dot(trial, trial), EPS**2))
-            tT = ufl.conditional(ufl.gt(t_norm, limit), limit * trial / t_norm, trial)
+        trial = -kt * s if lambda_t is None else Pt * lambda_t - kt * s
+        tT = smoothed_cone(trial, limit, friction_smoothing)
     residual = -ufl.inner(p * n + tT, v) * area * ds_c
     return ContactTerms(residual=residual, gap=g, normal=n, pressure=p,
                         tangential_traction=tT, area_factor=area, lambda_n=lambda_n)

@@ -94,6 +94,10 @@ class RigidContact:
     ``quadrature``: "gauss" (the problem's facet rule) or "vertex" (nodal collocation of the
     contact force, P1 only; see :data:`VERTEX_RULE`).
 
+    ``friction_smoothing`` delta in [0, 0.5]: the Coulomb cone rounded over (1 +- delta) mu p
+    (:func:`handfe.contact.smoothed_cone`; 0 = sharp). Held in the Constant
+    ``self.friction_smoothing`` (None if frictionless), which can be changed between solves.
+
     ``multiplier_degree``: Lagrange degree of the normal multiplier lambda_n, whose nodes are
     where the Uzawa update acts and the penetration is checked (default 1: the vertices);
     None = the displacement's degree (for P2: vertices and edge midpoints, every node at which
@@ -107,9 +111,12 @@ class RigidContact:
                  E_eff_MPa: float | None = None, augmented_friction: bool = False,
                  adaptive_penalty: float | None = None, stick_ratio: float = 1.0,
                  stick_tol_mm: float | None = None, quadrature: str = "gauss",
-                 multiplier_degree: int | None = 1):
+                 multiplier_degree: int | None = 1, friction_smoothing: float = 0.0):
         if mu < 0:
             raise InputError(f"friction coefficient mu = {mu} must be >= 0")
+        if not 0 <= friction_smoothing <= 0.5:
+            raise InputError(f"friction_smoothing = {friction_smoothing!r} must be within "
+                             "[0, 0.5]")
         if not 0 < stick_ratio <= 1:
             raise InputError(f"stick_ratio = {stick_ratio!r} must be within (0, 1]")
         if adaptive_penalty is not None and not adaptive_penalty > 0:
@@ -147,14 +154,18 @@ class RigidContact:
             Vu = fem.VectorFunctionSpace(mesh, ("CG", problem.disc.degree))
             self.u_ref = fem.Function(Vu, name="stick_anchor")
             self._mu_c = fem.Constant(mesh, PETSc.ScalarType(mu))
+            # a Constant, so the cone can be rounded for one solve without recompiling
+            self.friction_smoothing = fem.Constant(mesh, PETSc.ScalarType(friction_smoothing))
             kw = {"mu": self._mu_c, "u_ref": self.u_ref,
-                  "translation_ref": self.translation_ref}
+                  "translation_ref": self.translation_ref,
+                  "friction_smoothing": self.friction_smoothing}
             if augmented and augmented_friction:
                 self.lambda_t = fem.Function(Vu, name="tangential_multiplier")
                 self._k_t = fem.Constant(mesh, PETSc.ScalarType(stick_ratio * self.k_n_value))
                 kw.update(lambda_t=self.lambda_t, k_t=self._k_t)
         else:
             self.u_ref = None
+            self.friction_smoothing = None
         self.terms = ufl_contact_terms(problem.u, problem.vu, obstacle, self.translation,
                                        ds(tag), k_n=self.k_n, lambda_n=self.lambda_n, **kw)
         problem.add_residual(self.terms.residual)

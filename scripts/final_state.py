@@ -9,8 +9,9 @@ because the mesh partition differs between runs. ``replay`` builds the same scen
 forms: ~20 s), restores the dump on any partition and runs one of:
 
 - ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``); every mode
-  then writes the outputs to ``DIR/replay-MODE`` (``summary.json`` status, equilibrium, torque
-  residuals);
+  then writes the outputs to ``DIR/replay-MODE[-smoothingDELTA]`` (``summary.json`` status,
+  equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb cone
+  first);
 - ``derivatives``: the Newton direction d at the state, the residual norm along -d, and
   forward / backward finite differences of the tissue and contact forms along d against the
   assembled tangent (a kink of the law shows as forward != backward), and where d is large;
@@ -224,11 +225,15 @@ def balance(scene) -> None:
     scene._tighten(stalled=True)
 
 
-def replay(workflow: str, folder: Path, mode: str) -> None:
+def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = None) -> None:
     def solve_muscles(self) -> None:
         restore(self, folder)
         t0 = time.perf_counter()
         self.say(f"restored the dump: residual {self._residual_norm():.3e} N")
+        if smoothing is not None:
+            self.contact.friction_smoothing.value = smoothing
+            self.say(f"Coulomb cone rounded over +-{smoothing:g} mu p: residual "
+                     f"{self._residual_norm():.3e} N")
         {"tighten": lambda s: s._tighten(stalled=True), "derivatives": derivatives,
          "cone": cone, "linesearch": linesearch, "balance": balance}[mode](self)
         self.say(f"{mode}: {time.perf_counter() - t0:.1f} s, residual "
@@ -237,7 +242,8 @@ def replay(workflow: str, folder: Path, mode: str) -> None:
         self.torque = self.torques()
 
     S.GraspFE.solve_muscles = solve_muscles
-    r = S.run_workflow(workflow, out_dir=folder / f"replay-{mode}")
+    tail = "" if smoothing is None else f"-smoothing{smoothing:g}"
+    r = S.run_workflow(workflow, out_dir=folder / f"replay-{mode}{tail}")
     if MPI.COMM_WORLD.rank == 0:
         s = r.summary
         print(f"status {s.get('status')}, equilibrium {s.get('equilibrium_relative_error')}, "
@@ -254,11 +260,14 @@ def main() -> None:
     ap.add_argument("--mode", default="tighten",
                     choices=("tighten", "derivatives", "cone", "linesearch", "balance"),
                     help="replay: what to run from the dumped state (default tighten)")
+    ap.add_argument("--friction-smoothing", type=float, default=None, metavar="DELTA",
+                    help="replay: round the Coulomb cone over (1 +- DELTA) mu p before the "
+                         "mode runs (handfe.contact.smoothed_cone; default: the run's value)")
     a = ap.parse_args()
     if a.action == "dump":
         dump(a.workflow, a.folder)
     else:
-        replay(a.workflow, a.folder, a.mode)
+        replay(a.workflow, a.folder, a.mode, a.friction_smoothing)
 
 
 if __name__ == "__main__":

@@ -175,3 +175,47 @@ def test_friction_anchor_update():
     left = s[1] - shift[1]
     assert 10.0 * np.linalg.norm(left) == pytest.approx(0.5 * 0.1)
     np.testing.assert_allclose(shift[2], 0.0, atol=1e-15)
+
+
+def test_smoothed_cone_joins_stick_and_slip_with_a_continuous_slope():
+    """The rounded Coulomb cone equals the sharp law outside (1 +- delta) mu p, never exceeds
+    mu p, keeps the trial's direction, and its magnitude has no slope jump at the band's
+    edges (the sharp law jumps from 1 to 0 at mu p)."""
+    import ufl
+    from dolfinx import fem, mesh
+    from mpi4py import MPI
+    from petsc4py import PETSc
+
+    from handfe.contact import smoothed_cone
+
+    m = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
+    trial = fem.Constant(m, PETSc.ScalarType((0.0, 0.0, 0.0)))
+    limit = fem.Constant(m, PETSc.ScalarType(0.2))  # mu p, MPa
+    delta = fem.Constant(m, PETSc.ScalarType(0.1))
+    e = np.array([0.6, -0.8, 0.0])
+    tT = smoothed_cone(trial, limit, delta)
+    along = fem.form(ufl.dot(tT, ufl.as_vector(e.tolist())) * ufl.dx)
+    across = fem.form(ufl.dot(tT, ufl.as_vector([0.8, 0.6, 0.0])) * ufl.dx)
+
+    def mag(t: float, d: float = 0.1) -> float:
+        trial.value = t * e
+        delta.value = d
+        assert abs(fem.assemble_scalar(across)) < 1e-14
+        return fem.assemble_scalar(along)
+
+    L = 0.2
+    for t in (0.0, 0.05, 0.17, 0.179, 0.221, 0.3, 2.0):  # outside the band: the sharp law
+        assert mag(t) == pytest.approx(min(t, L), abs=1e-14)
+        assert mag(t, 0.0) == pytest.approx(min(t, L), abs=1e-14)
+    band = np.linspace(0.18, 0.22, 41)
+    vals = np.array([mag(t) for t in band])
+    assert np.all(vals <= L + 1e-15) and np.all(np.diff(vals) >= 0.0)
+    assert mag(L) == pytest.approx(L * (1.0 - 0.1 / 4.0))  # the largest deviation, delta/4
+    h = 1e-7
+    for edge, slope in ((0.18, 1.0), (0.22, 0.0)):
+        left = (mag(edge) - mag(edge - h)) / h
+        right = (mag(edge + h) - mag(edge)) / h
+        assert left == pytest.approx(slope, abs=1e-5) and right == pytest.approx(slope, abs=1e-5)
+    trial.value = np.zeros(3)
+    limit.value = 0.0  # out of contact: no traction, no NaN from the guarded blend
+    assert fem.assemble_scalar(along) == 0.0
