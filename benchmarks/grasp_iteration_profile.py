@@ -16,10 +16,10 @@ import argparse
 import time
 
 from mpi4py import MPI
-from petsc4py import PETSc
 
 from handfe.grasp import run_workflow, scene
 from handfe.parallel import rprint
+from handfe.solver import mumps_lu_ksp
 
 
 def _measure(self) -> None:
@@ -48,12 +48,7 @@ def _measure(self) -> None:
         return go
 
     def factor_solve():
-        ksp = PETSc.KSP().create(comm)
-        ksp.setType("preonly")
-        pc = ksp.getPC()
-        pc.setType("lu")
-        pc.setFactorSolverType("mumps")
-        ksp.setOperators(A)
+        ksp = mumps_lu_ksp(comm, A)
         y = x.duplicate()
         ksp.solve(b, y)
         ksp.destroy()

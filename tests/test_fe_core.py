@@ -308,3 +308,39 @@ def test_admissible_step_of_the_inversion_guard():
     A = np.stack([np.diag([-1.0, 1, 1]), np.eye(3)])
     B = np.stack([np.zeros((3, 3)), np.diag([2.0, 0, 0])])
     assert admissible_step(A, B, 0.1) == pytest.approx(14 / 32)
+
+
+def _rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        return int(f.read().split("VmRSS:")[1].split()[0]) / 1024.0
+
+
+def test_mumps_lu_ksp_frees_its_factor():
+    """Repeated factorisations with mumps_lu_ksp + destroy() do not grow memory. The pattern it
+    replaces (a local ``pc = ksp.getPC()`` alive at ``ksp.destroy()``) kept every LU factor
+    (+22 MB per solve on this 40,000-dof Laplacian, petsc4py 3.18), and the torque iterations
+    of a muscles run, one condensed tangent each, ran 24 GB out."""
+    from handfe.solver import mumps_lu_ksp
+
+    n = 200
+    A = PETSc.Mat().createAIJ([n * n, n * n], nnz=5, comm=MPI.COMM_SELF)
+    for i in range(n * n):
+        r, c = divmod(i, n)
+        A.setValue(i, i, 4.0)
+        for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+            if 0 <= rr < n and 0 <= cc < n:
+                A.setValue(i, rr * n + cc, -1.0)
+    A.assemble()
+    b = A.createVecRight()
+    b.set(1.0)
+    x = b.duplicate()
+    rss = []
+    for _ in range(6):
+        ksp = mumps_lu_ksp(MPI.COMM_SELF, A)
+        ksp.solve(b, x)
+        assert ksp.getConvergedReason() > 0
+        ksp.destroy()
+        rss.append(_rss_mb())
+    for o in (A, b, x):
+        o.destroy()
+    assert rss[-1] - rss[1] < 20.0, f"memory grew {rss[-1] - rss[1]:.0f} MB over 4 solves: {rss}"

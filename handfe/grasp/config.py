@@ -158,6 +158,10 @@ class SolverSpec:
     augmented_friction: bool = False
     stick_ratio: float = field(default=1.0, metadata=bounds(0.01, 1.0))
     stick_tol_mm: float = field(default=0.02, metadata=bounds(1e-5, 1.0))
+    # the Coulomb cone rounded over (1 +- friction_smoothing) mu p (handfe.contact.smoothed_cone:
+    # a continuous tangent where points sit on the cone; at most friction_smoothing/4 x mu p
+    # less friction there); 0 = the sharp cone
+    friction_smoothing: float = field(default=0.0, metadata=bounds(0.0, 0.5))
     # Newton tolerance (N, residual norm) of the closing steps and their Uzawa updates (2e-3 x
     # the digit forces, at most this); then a tight solve (1e-9 N, a stall <= 1e-4 N accepted)
     # and the final Uzawa phase, tight too, make the reported state. 0 = every solve tight.

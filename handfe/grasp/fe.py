@@ -21,7 +21,7 @@ from mpi4py import MPI
 from petsc4py import PETSc
 
 from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
-from handfe.solver import Discretisation, lift_unless_satisfied
+from handfe.solver import Discretisation, lift_unless_satisfied, mumps_lu_ksp
 from handfe.step_guard import InversionGuard
 
 SKIN, SUBCUT, NAIL = 1, 2, 3
@@ -444,12 +444,7 @@ class BoneBC:
         A = fem_petsc.assemble_matrix(self._ext_a, bcs=[self._ext_bc])
         A.assemble()
         self._ext_A = A
-        self._ext_ksp = PETSc.KSP().create(mesh.comm)
-        self._ext_ksp.setOperators(A)
-        self._ext_ksp.setType("preonly")
-        pc = self._ext_ksp.getPC()
-        pc.setType("lu")
-        pc.setFactorSolverType("mumps")
+        self._ext_ksp = mumps_lu_ksp(mesh.comm, A)
         self._ext_b = fem_petsc.create_vector(self._ext_L)
         self._ext_x = fem.Function(V)
 
@@ -558,12 +553,7 @@ def condensed_tangent(solver: TwoFormNewton, bc: BoneBC, axes_centres, distal_se
     x = solver.problem.w.vector.copy()
     solver._jacobian(None, x, A, None)  # Dirichlet-reduced tangent at the converged state
     x.destroy()
-    ksp = PETSc.KSP().create(comm)
-    ksp.setOperators(A)
-    ksp.setType("preonly")
-    pc = ksp.getPC()
-    pc.setType("lu")
-    pc.setFactorSolverType("mumps")
+    ksp = mumps_lu_ksp(comm, A)
     v, y, z, dR = (K.createVecRight() for _ in range(4))
     bcd = bc.bc_dofs_W
     n_owned = v.getLocalSize()

@@ -660,7 +660,8 @@ class GraspFE:
                                     adaptive_penalty=s.adaptive_penalty or None,
                                     augmented_friction=s.augmented_friction,
                                     stick_ratio=s.stick_ratio, stick_tol_mm=s.stick_tol_mm,
-                                    quadrature=s.contact_quadrature)
+                                    quadrature=s.contact_quadrature,
+                                    friction_smoothing=s.friction_smoothing)
         self.contact.translation.value = np.asarray(shift, dtype=float)
         self.contact.max_penalty_growth = 4.0  # stronger growth ruins Newton on the hand
         # contact Newton often converges linearly for a while (active set settling): 40
