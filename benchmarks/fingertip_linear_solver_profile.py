@@ -67,6 +67,7 @@ def main() -> None:
                f"{tn / 2:.3f} s, solve {ts:.3f} s, relative residual {r.norm() / ns.b.norm():.1e}")
         for v in (y, r):
             v.destroy()
+        del pc, ksp  # a PC handle alive at destroy() keeps its factor (handfe.solver.mumps_lu_ksp)
         ns.destroy()
 
 
