@@ -260,9 +260,9 @@ def mumps_lu_ksp(comm: MPI.Comm, A: PETSc.Mat) -> PETSc.KSP:
 
     No Python handle of its PC outlives this function: with petsc4py 3.18, a PC obtained by
     ``ksp.getPC()`` and still referenced when the KSP is destroyed is never freed, and with it
-    the LU factor (measured: +22 MB per solve on a 40,000-dof Laplacian; ~300 MB per torque
-    iteration on the coarse hand, which ran a 2-rank muscles run out of 24 GB after 30 min;
-    ``tests/test_fe_core.py::test_mumps_lu_ksp_frees_its_factor``)."""
+    the LU factor (measured: +22 MB per solve on a 40,000-dof Laplacian; ~150 MB per rank per
+    torque iteration on the coarse hand, which ran a 2-rank muscles run out of 24 GB after 31
+    min; ``tests/test_fe_core.py::test_mumps_lu_ksp_frees_its_factor``)."""
     ksp = PETSc.KSP().create(comm)
     ksp.setOperators(A)
     ksp.setType("preonly")
