@@ -37,6 +37,7 @@ import numpy as np
 from mpi4py import MPI
 
 from handfe.grasp import scene as S
+from handfe.solver import mumps_lu_ksp
 
 #: the scene attributes the torques and the torque Newton need besides the snapshot
 EXTRA = ("tau_muscle", "muscle_load", "force_target", "coupled", "at_limit", "closing_mu")
@@ -121,13 +122,10 @@ def derivatives(scene) -> None:
     b = x.duplicate()
     sol._residual(None, x, b)
     sol._jacobian(None, x, sol.A, sol.A)
-    ksp = PETSc.KSP().create(prob.comm)
-    ksp.setOperators(sol.A)
-    ksp.setType("preonly")
-    ksp.getPC().setType("lu")
-    ksp.getPC().setFactorSolverType("mumps")
+    ksp = mumps_lu_ksp(prob.comm, sol.A)
     d = x.duplicate()
     ksp.solve(b, d)
+    ksp.destroy()
     say(f"|R| {b.norm():.3e} N, Newton direction |d| {d.norm():.3e}, max "
         f"{d.norm(PETSc.NormType.INFINITY):.3e}")
     for t in (1.0, 0.5, 0.1, 1e-2, 1e-3):
