@@ -511,7 +511,9 @@ class ContactTerms:
     ``-int (p n + t_T) . v da`` on the contact measure); its Jacobian comes from
     ``ufl.derivative``. gap [mm], normal, pressure [MPa] (>= 0), tangential_traction [MPa]
     (zero vector if frictionless) and area_factor (J |F^-T N|, deformed/reference area) are
-    expressions for output and for the Uzawa update."""
+    expressions for output and for the Uzawa update. With friction, slip [mm] (tangential slip
+    since the anchor) and trial_traction [MPa] (before the return mapping onto mu p) too, else
+    None."""
 
     residual: Any
     gap: Any
@@ -520,6 +522,8 @@ class ContactTerms:
     tangential_traction: Any
     area_factor: Any
     lambda_n: Any = None
+    slip: Any = None
+    trial_traction: Any = None
 
 
 def deformed_area_factor(u):
@@ -574,6 +578,7 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
     p = ufl.max_value(lam - k_n * g, 0.0)
     area = deformed_area_factor(u)
     frictionless = isinstance(mu, int | float) and float(mu) == 0.0
+    s = trial = None
     if frictionless:
         tT = ufl.as_vector([0.0] * len(u))
     else:
@@ -588,7 +593,8 @@ def ufl_contact_terms(u, v, obstacle, translation, ds_c, *, k_n, lambda_n=None,
         tT = smoothed_cone(trial, limit, friction_smoothing)
     residual = -ufl.inner(p * n + tT, v) * area * ds_c
     return ContactTerms(residual=residual, gap=g, normal=n, pressure=p,
-                        tangential_traction=tT, area_factor=area, lambda_n=lambda_n)
+                        tangential_traction=tT, area_factor=area, lambda_n=lambda_n,
+                        slip=s, trial_traction=trial)
 
 
 def assemble_nodal(form) -> np.ndarray:

@@ -172,11 +172,8 @@ class RigidContact:
         self.uzawa = UzawaUpdate(self.terms, facets, ds(tag), self.k_n) if augmented else None
         if mu > 0:
             # nodal slip and pressure at the anchor's dofs, for the return mapping in on_step
-            n = self.terms.normal
-            Pt = ufl.Identity(3) - ufl.outer(n, n)
-            slip = Pt * ((problem.u - self.u_ref) - (self.translation - self.translation_ref))
             pts = Vu.element.interpolation_points()
-            self._slip_expr = fem.Expression(slip, pts)
+            self._slip_expr = fem.Expression(self.terms.slip, pts)
             self._p_expr = fem.Expression(self.terms.pressure, pts)
             self._slip = fem.Function(Vu)
             self._pnode = fem.Function(fem.FunctionSpace(mesh, ("CG", problem.disc.degree)))

@@ -179,12 +179,10 @@ def cone(scene) -> None:
     import ufl
     from dolfinx import fem
 
-    c, u = scene.contact, scene.problem.u
+    c = scene.contact
     T = c.terms
     arg = c.lambda_n - c.k_n * T.gap
-    Pt = ufl.Identity(3) - ufl.outer(T.normal, T.normal)
-    slip = Pt * ((u - c.u_ref) - (c.translation - c.translation_ref))
-    trial = Pt * c.lambda_t - c._k_t * slip
+    trial = T.trial_traction
     off = abs(ufl.sqrt(ufl.max_value(ufl.dot(trial, trial), 1e-24)) - c._mu_c * T.pressure)
     ds = ufl.Measure("ds", domain=scene.problem.mesh, subdomain_data=scene.skin_tags,
                      metadata=scene.problem.ds_metadata)(1)
