@@ -18,10 +18,10 @@ Loading:
   muscles  EXPERIMENTAL: the coarse cylinder (workflows/cylindrical_muscles.toml) balances
            the full EMG load to a relative torque residual of 5e-4 with the pads within
            0.01 mm, with solver.tangent_predictor, solver.inversion_guard and
-           solver.muscle_final_uzawa = "interleaved" (set there; off by default), but
-           ends "unbalanced" in four runs of five (object vs support 6e-5: the tight
-           solve of the stalled final state diverges); in the fifth it converged, but the
-           torque residual rose to 2e-3 (> torque_rtol), now "unbalanced" too; without
+           solver.muscle_final_uzawa = "interleaved" (set there; off by default). The
+           two runs since a memory fix (5 Dec) end "done" (object vs support 2e-14, torque
+           residual 8.8e-4, 0.0084 mm); five earlier ones ended "unbalanced" (object vs
+           support 6e-5 where the final FE solves stalled, or torque residual 2e-3); without
            them it ends on a penalty contact ~1.2 mm deep; the pinch stalled at 41 % of
            the load (older code, without the three keys; with them at 12.5 %, the thumb
            off the object); a run that gives up writes the last balanced
