@@ -2,16 +2,18 @@
 
 A muscles run of the coarse cylinder takes ~30 min to reach its final tight solve; experiments
 on that solve (docs/grasp.md, twentieth session) need its state, not the run. ``dump`` runs a
-workflow and, when the final tight solve starts, writes ``DIR/dump<rank>.pkl`` (the scene's
+workflow and, when the final tight solve starts (``--at full-load``: when the final Uzawa
+phase starts), writes ``DIR/dump<rank>.pkl`` (the scene's
 snapshot: state, bone motions, contact multipliers, stick anchors, penalty, stabilisation
 modulus, joint angles and torque data), every nodal/cell array keyed by its dof coordinates,
 because the mesh partition differs between runs. ``replay`` builds the same scene (mesh,
-forms: ~20 s), restores the dump on any partition and runs one of:
+forms: ~20 s), restores the dump on any partition, runs one of the modes below and writes
+the outputs to ``DIR/replay-MODE[-smoothingDELTA]`` or ``--out`` (``summary.json`` status,
+equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb cone first):
 
-- ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``); every mode
-  then writes the outputs to ``DIR/replay-MODE[-smoothingDELTA]`` (``summary.json`` status,
-  equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb cone
-  first);
+- ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``);
+- ``final-phase`` (from a dump ``--at full-load``): the final Uzawa phase and tight solve
+  (``GraspFE._final_muscle_phase``), e.g. with other ``[solver]`` keys in the workflow;
 - ``derivatives``: the Newton direction d at the state, the residual norm along -d, and
   forward / backward finite differences of the tissue and contact forms along d against the
   assembled tangent (a kink of the law shows as forward != backward), and where d is large;
@@ -75,21 +77,36 @@ def _spaces(scene) -> dict:
     return out
 
 
-def dump(workflow: str, folder: Path) -> None:
+def _write_dump(scene, folder: Path, what: str) -> None:
+    data = {"snap": scene._snapshot(),
+            "extra": {k: getattr(scene, k, None) for k in EXTRA},
+            "keys": {k: dof_keys(V) for k, V in _spaces(scene).items()}}
+    (folder / f"dump{MPI.COMM_WORLD.rank}.pkl").write_bytes(pickle.dumps(data))
+    scene.say(f"{what} dumped to {folder}")
+
+
+def dump(workflow: str, folder: Path, at: str = "final") -> None:
+    """Run ``workflow``, dumping the state where the final tight solve starts (``at`` =
+    "final") or where the final Uzawa phase starts, the full EMG load balanced ("full-load")."""
     folder.mkdir(parents=True, exist_ok=True)
-    tighten = S.GraspFE._tighten
+    if at == "final":
+        tighten = S.GraspFE._tighten
 
-    def patched(self, *, stalled: bool = False) -> bool:
-        if stalled and not getattr(self, "_dumped", False):
-            self._dumped = True
-            data = {"snap": self._snapshot(),
-                    "extra": {k: getattr(self, k, None) for k in EXTRA},
-                    "keys": {k: dof_keys(V) for k, V in _spaces(self).items()}}
-            (folder / f"dump{MPI.COMM_WORLD.rank}.pkl").write_bytes(pickle.dumps(data))
-            self.say(f"final state dumped to {folder}")
-        return tighten(self, stalled=stalled)
+        def patched(self, *, stalled: bool = False) -> bool:
+            if stalled and not getattr(self, "_dumped", False):
+                self._dumped = True
+                _write_dump(self, folder, "final state")
+            return tighten(self, stalled=stalled)
 
-    S.GraspFE._tighten = patched
+        S.GraspFE._tighten = patched
+    else:
+        phase = S.GraspFE._final_muscle_phase
+
+        def patched_phase(self) -> None:
+            _write_dump(self, folder, "state at full load (before the final Uzawa phase)")
+            phase(self)
+
+        S.GraspFE._final_muscle_phase = patched_phase
     S.run_workflow(workflow, out_dir=folder / "run")
 
 
@@ -221,7 +238,8 @@ def balance(scene) -> None:
     scene._tighten(stalled=True)
 
 
-def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = None) -> None:
+def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = None,
+           out: Path | None = None) -> None:
     def solve_muscles(self) -> None:
         restore(self, folder)
         t0 = time.perf_counter()
@@ -230,7 +248,8 @@ def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = Non
             self.contact.friction_smoothing.value = smoothing
             self.say(f"Coulomb cone rounded over +-{smoothing:g} mu p: residual "
                      f"{self._residual_norm():.3e} N")
-        {"tighten": lambda s: s._tighten(stalled=True), "derivatives": derivatives,
+        {"tighten": lambda s: s._tighten(stalled=True),
+         "final-phase": lambda s: s._final_muscle_phase(), "derivatives": derivatives,
          "cone": cone, "linesearch": linesearch, "balance": balance}[mode](self)
         self.say(f"{mode}: {time.perf_counter() - t0:.1f} s, residual "
                  f"{self._residual_norm():.3e} N")
@@ -239,7 +258,7 @@ def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = Non
 
     S.GraspFE.solve_muscles = solve_muscles
     tail = "" if smoothing is None else f"-smoothing{smoothing:g}"
-    r = S.run_workflow(workflow, out_dir=folder / f"replay-{mode}{tail}")
+    r = S.run_workflow(workflow, out_dir=out or folder / f"replay-{mode}{tail}")
     if MPI.COMM_WORLD.rank == 0:
         s = r.summary
         print(f"status {s.get('status')}, equilibrium {s.get('equilibrium_relative_error')}, "
@@ -254,16 +273,23 @@ def main() -> None:
     ap.add_argument("workflow", help="a muscles-mode workflow TOML")
     ap.add_argument("folder", type=Path, help="where the dump is (written by dump)")
     ap.add_argument("--mode", default="tighten",
-                    choices=("tighten", "derivatives", "cone", "linesearch", "balance"),
+                    choices=("tighten", "final-phase", "derivatives", "cone", "linesearch",
+                             "balance"),
                     help="replay: what to run from the dumped state (default tighten)")
     ap.add_argument("--friction-smoothing", type=float, default=None, metavar="DELTA",
                     help="replay: round the Coulomb cone over (1 +- DELTA) mu p before the "
                          "mode runs (handfe.contact.smoothed_cone; default: the run's value)")
+    ap.add_argument("--at", default="final", choices=("final", "full-load"),
+                    help="dump: where the run's state is dumped - where the final tight solve "
+                         "starts (default), or where the final Uzawa phase starts, the full "
+                         "EMG load balanced (for replay --mode final-phase)")
+    ap.add_argument("--out", type=Path, default=None,
+                    help="replay: the output folder (default DIR/replay-MODE[-smoothingDELTA])")
     a = ap.parse_args()
     if a.action == "dump":
-        dump(a.workflow, a.folder)
+        dump(a.workflow, a.folder, a.at)
     else:
-        replay(a.workflow, a.folder, a.mode, a.friction_smoothing)
+        replay(a.workflow, a.folder, a.mode, a.friction_smoothing, a.out)
 
 
 if __name__ == "__main__":

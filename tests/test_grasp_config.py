@@ -454,6 +454,23 @@ def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
     assert abs(fake.converged - 10.0) <= 1.0
 
 
+def test_uzawa_depth_cap_under_relaxes_deep_updates_only():
+    """``max_depth_mm`` (solver.muscle_uzawa_max_mm): an update at 0.1 mm takes 0.03/0.1 of its
+    multiplier change, so Newton follows it without a failed try (without the cap: two)."""
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeUzawa()
+    GraspFE.augment(fake, max_depth_mm=0.03)
+    # penetrations 0.1, 0.07, 0.04 mm: 0.3, 0.43, 0.75 of the changes 10, 7, 4
+    assert [d for d, _ in fake.resolves] == pytest.approx([3.0, 3.0, 3.0])
+    assert all(ok for _, ok in fake.resolves)
+    assert fake.contact.last_penetration_mm <= 0.01
+    # a cap above the penetration changes nothing: the full update first (which fails here)
+    fake = _FakeUzawa()
+    GraspFE.augment(fake, max_depth_mm=0.5)
+    assert fake.resolves[0] == (pytest.approx(10.0), False)
+
+
 def _with_stick_history(fake):
     """The fake with stick multipliers and a due return mapping that changes them (as
     RigidContact.on_step does after an accepted step, before any re-solve)."""
@@ -599,6 +616,11 @@ class _FakeMuscles:
         from handfe.grasp.scene import GraspFE
 
         GraspFE._penalty_to_pressure(self, **kw)
+
+    def _final_muscle_phase(self):
+        from handfe.grasp.scene import GraspFE
+
+        GraspFE._final_muscle_phase(self)
 
     def digit_forces(self):
         return {"index": float(-self._tissue(self.theta).sum() / 40.0)}
@@ -1117,7 +1139,7 @@ def test_muscles_mode_uzawa_updates_within_the_balance(monkeypatch):
     depth = {"mm": 1.0}
     calls: list[tuple] = []
 
-    def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None):
+    def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None, max_depth_mm=0.0):
         if max_updates is None:  # the final Uzawa phase at full load
             depth["mm"] = 0.005
             return
@@ -1159,7 +1181,7 @@ def test_muscles_mode_interleaved_final_phase_updates_between_torque_steps(monke
     depth = {"mm": 1.2}
     calls: list[tuple] = []
 
-    def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None):
+    def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None, max_depth_mm=0.0):
         assert max_updates == 1, "no Uzawa phase at the fixed posture"
         calls.append((tol_mm, creep))
         if depth["mm"] > tol_mm:

@@ -128,6 +128,11 @@ class SolverSpec:
     # update after every torque step of that balance until both hold, so the joints give way
     # as the pads harden
     muscle_final_uzawa: str = field(default="fixed", metadata=choices("fixed", "interleaved"))
+    # muscles mode: an Uzawa update between torque steps (muscle_uzawa, the interleaved final
+    # phase) takes at most muscle_uzawa_max_mm / penetration of the full multiplier change, so
+    # the fixed-posture re-solve pushes the deepest pad out by about this much, and the torque
+    # steps follow in smaller bites; 0 = full updates (docs/grasp.md, twenty-second session)
+    muscle_uzawa_max_mm: float = field(default=0.0, metadata=bounds(0.0, 10.0))
     # muscles mode: each torque step's FE solve may also start from the linear response of the
     # condensed tangent (dw/dtheta, the solves it needs anyway) to the step's joint angles,
     # next to the elastic extension of the bone motion and the secant predictor; the one with

@@ -948,10 +948,13 @@ class GraspFE:
         return ok
 
     def augment(self, tol_mm: float | None = None, *, creep: bool = True,
-                stop: Callable[[], bool] | None = None, max_updates: int | None = None) -> None:
+                stop: Callable[[], bool] | None = None, max_updates: int | None = None,
+                max_depth_mm: float = 0.0) -> None:
         """Uzawa updates until the penetration (and, if ``creep``, the stick creep) is <= the
         tolerance (``tol_mm``, default the contact's), or ``stop()`` is true after a re-solve,
-        at most ``max_updates`` (default ``solver.max_augment``).
+        at most ``max_updates`` (default ``solver.max_augment``). With ``max_depth_mm`` > 0 an
+        update at a penetration deeper than that is under-relaxed to ``max_depth_mm`` /
+        penetration of its multiplier change.
         A re-solve that fails restores the last converged state and multipliers and stops (the
         penetration reached is reported, never hidden)."""
         c = self.contact
@@ -962,7 +965,7 @@ class GraspFE:
             if not creep:
                 c.stick_tol_mm = math.inf
             try:
-                self.augment(stop=stop, max_updates=max_updates)
+                self.augment(stop=stop, max_updates=max_updates, max_depth_mm=max_depth_mm)
             finally:
                 c.penetration_tol_mm, c.stick_tol_mm = tols
             return
@@ -1003,20 +1006,23 @@ class GraspFE:
             new = (c.lambda_n.x.array.copy(),
                    None if c.lambda_t is None else c.lambda_t.x.array.copy())
             relax = relax0
+            if max_depth_mm > 0.0 and c.last_penetration_mm > max_depth_mm:
+                relax = min(relax, max_depth_mm / c.last_penetration_mm)
+            first = relax
             if relax < 1.0:
                 self._relax_multipliers(relax, lam, lam_t, new)
                 c.set_penalty(k)
-            ok = self._resolve(what if relax == 1.0 else f"{what} x{relax:g}", undo)
-            while not ok and relax > 0.3:
+            ok = self._resolve(what if relax == 1.0 else f"{what} x{relax:.3g}", undo)
+            while not ok and relax > 0.3 * first:
                 # under-relaxed update from the restored state: half the multiplier change,
                 # the old penalty (a full update that Newton cannot follow ended the phase)
                 relax /= 2.0
                 self._relax_multipliers(relax, lam, lam_t, new)
-                ok = self._resolve(f"{what} x{relax:g}", undo)
+                ok = self._resolve(f"{what} x{relax:.3g}", undo)
             if not ok:
                 self._set_contact_data(balanced)
                 return
-            relax0 = relax
+            relax0 *= relax / first  # what the failures needed; the depth cap is per update
 
     def _relax_multipliers(self, relax: float, lam: np.ndarray, lam_t: np.ndarray | None,
                            new: tuple[np.ndarray, np.ndarray | None]) -> None:
@@ -1445,32 +1451,7 @@ class GraspFE:
                     raise SolverError(f"muscle load {lam:.3g} (from {done:.3g}): {why}",
                                       load_step=len(self.steps) + 1, load_factor=done)
                 self.say(f"    muscle load {lam:.3g} failed ({why}): step halved")
-            interleaved = s.muscle_final_uzawa == "interleaved"
-            if not interleaved:
-                # interleaved: the Uzawa updates after each torque step close the gap with the
-                # penalty the full load was balanced with; raising it first (2.23 -> 4.47
-                # N/mm3 on the coarse cylinder) failed its fixed-posture re-solve in runs C, D
-                # and E alike (55-80 Newton iterations, 65-117 s) and gave the data back
-                self._penalty_to_pressure(resolve=True)
-            balanced = self._snapshot()  # a failed round reports this, not an unbalanced state
-            depth = {"uzawa_depth_mm": s.penetration_tol_mm} if interleaved else {}
-            for _ in range(3):
-                if not interleaved:
-                    with self._grip_stall():
-                        self._scale_stall_to_grip()
-                        self.augment()
-                ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)",
-                                                **depth)
-                pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
-                if ok:
-                    balanced = self._snapshot()
-                if ok and pen <= s.penetration_tol_mm:
-                    break
-            if not ok:
-                self._restore(balanced)
-                raise SolverError(f"torque balance at full muscle load: {why}",
-                                  load_step=len(self.steps) + 1, load_factor=1.0)
-            self._tighten(stalled=True)
+            self._final_muscle_phase()
         except SolverError:
             if self.muscle_load > 0.0:
                 # the state is the last balanced load's (restored): its torques, with the
@@ -1487,6 +1468,40 @@ class GraspFE:
             self.tau_muscle = tau_m
         self.digit_force_N = self.digit_forces()
         self.torque = self.torques()
+
+    def _final_muscle_phase(self) -> None:
+        """After the full muscle load balanced: Uzawa updates remove the penetration
+        (``solver.muscle_final_uzawa``: at the fixed posture between balances, or one after
+        each torque step), the balance is re-established (three rounds at most) and the final
+        tight solve follows. Raises :class:`SolverError` (state restored to the last balanced
+        one) when the balance fails."""
+        s = self.wf.solver
+        interleaved = s.muscle_final_uzawa == "interleaved"
+        if not interleaved:
+            # interleaved: the Uzawa updates after each torque step close the gap with the
+            # penalty the full load was balanced with; raising it first (2.23 -> 4.47
+            # N/mm3 on the coarse cylinder) failed its fixed-posture re-solve in runs C, D
+            # and E alike (55-80 Newton iterations, 65-117 s) and gave the data back
+            self._penalty_to_pressure(resolve=True)
+        balanced = self._snapshot()  # a failed round reports this, not an unbalanced state
+        depth = {"uzawa_depth_mm": s.penetration_tol_mm} if interleaved else {}
+        for _ in range(3):
+            if not interleaved:
+                with self._grip_stall():
+                    self._scale_stall_to_grip()
+                    self.augment()
+            ok, why = self._balance_torques(s.torque_rtol, label="muscle load 1 (Uzawa)",
+                                            **depth)
+            pen = self.contact.uzawa.penetration() if self.contact.uzawa else 0.0
+            if ok:
+                balanced = self._snapshot()
+            if ok and pen <= s.penetration_tol_mm:
+                break
+        if not ok:
+            self._restore(balanced)
+            raise SolverError(f"torque balance at full muscle load: {why}",
+                              load_step=len(self.steps) + 1, load_factor=1.0)
+        self._tighten(stalled=True)
 
     def _penalty_to_pressure(self, *, resolve: bool = False) -> None:
         """``solver.muscle_penalty_follows_pressure``: before a muscle load (and the final Uzawa
@@ -1736,7 +1751,8 @@ class GraspFE:
     def _one_uzawa_update(self, depth_mm: float) -> None:
         """One Uzawa update of the normal multipliers (penetration only, unless it is <=
         ``depth_mm``) and its re-solve."""
-        self.augment(depth_mm, creep=False, max_updates=1)
+        self.augment(depth_mm, creep=False, max_updates=1,
+                     max_depth_mm=self.wf.solver.muscle_uzawa_max_mm)
 
     def _friction_use(self) -> str:
         """Each participating digit's tangential / normal contact force against the friction
