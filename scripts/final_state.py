@@ -229,7 +229,7 @@ def linesearch(scene) -> None:
 def balance(scene) -> None:
     scene._tighten(stalled=True)
     scene.say(f"after the tight solve: largest relative torque residual "
-              f"{np.where(scene.at_limit, 0.0, scene.torques()['relative']).max():.2e}")
+              f"{scene.max_torque_residual():.2e}")
     scene._stall_base = scene.solver.stall_atol
     scene._scale_stall_to_grip = lambda: None  # FE solves to the tight stall tolerance
     with scene._friction_history_per_load():

@@ -1037,6 +1037,12 @@ class GraspFE:
         return [joint_axis_centre(skel, j) for j in self.joints], \
             [j.distal_bones for j in self.joints]
 
+    def max_torque_residual(self, tq: dict[str, np.ndarray] | None = None) -> float:
+        """Largest relative torque residual over the released joints not held at a limit
+        (of :meth:`torques`, or of ``tq`` when given)."""
+        tq = self.torques() if tq is None else tq
+        return float(np.where(self.at_limit, 0.0, tq["relative"]).max(initial=0.0))
+
     def torques(self) -> dict[str, np.ndarray]:
         from handfe.grasp.fe import torques_from
 
@@ -1838,8 +1844,8 @@ class GraspFE:
             obj["force_residual_N"] = f.tolist()
             obj["relative_force_residual"] = float(np.linalg.norm(f) / max(grip, 1e-9))
         eq = global_equilibrium(self.solver, self.bc, self.problem.comm, scale_N=grip)
-        return {"joints": joints, **eq, "object_motion": obj, "max_relative_torque_residual": float(
-                    np.where(self.at_limit, 0.0, tq["relative"]).max(initial=0.0)),
+        return {"joints": joints, **eq, "object_motion": obj,
+                "max_relative_torque_residual": self.max_torque_residual(tq),
                 "max_penetration_mm": float(pen), "load_steps": len(self.steps),
                 "newton_iterations": int(self.solver.iterations),
                 "newton_stalls_accepted": int(self.solver.stalls),
