@@ -16,16 +16,16 @@ contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (
 
 Loading:
   muscles  EXPERIMENTAL: the coarse cylinder (workflows/cylindrical_muscles.toml) balances
-           the full EMG load to a relative torque residual of 5e-4 with the pads within
-           0.01 mm, with solver.tangent_predictor, solver.inversion_guard and
-           solver.muscle_final_uzawa = "interleaved" (set there; off by default). The
-           two runs since a memory fix (5 Dec) end "done" (object vs support 2e-14, torque
-           residual 8.8e-4, 0.0084 mm); five earlier ones ended "unbalanced" (object vs
-           support 6e-5 where the final FE solves stalled, or torque residual 2e-3); without
-           them it ends on a penalty contact ~1.2 mm deep; the pinch stalled at 41 % of
-           the load (older code, without the three keys; with them at 12.5 %, the thumb
-           off the object); a run that gives up writes the last balanced
-           load's results, marked partial; docs/grasp.md (README: Grasp status).
+           the full EMG load to a relative torque residual < 1e-3 with the pads within
+           0.01 mm and the object in equilibrium to 2e-14 (status "done" in the four runs
+           finished since a memory fix, 5 Dec; 15-16 min on 2 cores with this file's keys), with
+           solver.tangent_predictor, solver.inversion_guard, solver.muscle_final_uzawa =
+           "interleaved", solver.friction_smoothing and solver.muscle_uzawa_max_mm (set
+           there; off by default). Earlier runs ended "unbalanced" (object vs support 6e-5
+           where the final FE solves stalled) or failed in the final Uzawa phase; the
+           spherical and precision grasps do not reach the full load yet (docs/grasp.md);
+           a run that gives up writes the last balanced load's results, marked partial;
+           docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
            the EMG muscle forces act as joint torques through their moment arms
            (anatomy/moment_arms.csv), ramped up from the torques that hold the closed posture,
