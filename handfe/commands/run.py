@@ -22,8 +22,9 @@ Loading:
            solver.tangent_predictor, solver.inversion_guard, solver.muscle_final_uzawa =
            "interleaved", solver.friction_smoothing and solver.muscle_uzawa_max_mm (set
            there; off by default). Earlier runs ended "unbalanced" (object vs support 6e-5
-           where the final FE solves stalled) or failed in the final Uzawa phase; the
-           spherical and precision grasps do not reach the full load yet (docs/grasp.md);
+           where the final FE solves stalled) or failed in the final Uzawa phase; with
+           that recipe the ball balanced the full load but failed its final Uzawa phase,
+           and the pinch reached 53 % of it (docs/grasp.md);
            a run that gives up writes the last balanced load's results, marked partial;
            docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
