@@ -17,8 +17,8 @@ contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (
 Loading:
   muscles  EXPERIMENTAL: the coarse cylinder (workflows/cylindrical_muscles.toml) balances
            the full EMG load to a relative torque residual < 1e-3 with the pads within
-           0.01 mm and the object in equilibrium to 2e-14 (status "done" in the four runs
-           finished since a memory fix, 5 Dec; 15-16 min on 2 cores with this file's keys), with
+           0.01 mm and the object in equilibrium to 2e-14 (status "done" in runs Q and Q2
+           with this file's keys, 15-16 min on 2 cores, and L and M before them), with
            solver.tangent_predictor, solver.inversion_guard, solver.muscle_final_uzawa =
            "interleaved", solver.friction_smoothing and solver.muscle_uzawa_max_mm (set
            there; off by default). Earlier runs ended "unbalanced" (object vs support 6e-5
