@@ -454,6 +454,25 @@ def test_uzawa_phase_keeps_the_under_relaxation_a_failed_update_needed():
     assert abs(fake.converged - 10.0) <= 1.0
 
 
+def test_uzawa_phase_stops_when_the_kept_under_relaxation_fails():
+    """Without a depth cap the halving stops at 0.3: an update that fails at the kept x0.25
+    ends the phase instead of halving on."""
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakeUzawa()
+    resolve = fake._resolve
+
+    def stricter_after_first(what, undo):
+        ok = resolve(what, undo)
+        if ok:
+            fake.max_change = 1.0  # the next update at x0.25 (a change of 1.875) fails
+        return ok
+
+    fake._resolve = stricter_after_first
+    GraspFE.augment(fake)
+    assert [ok for _, ok in fake.resolves] == [False, False, True, False]
+
+
 def test_uzawa_depth_cap_under_relaxes_deep_updates_only():
     """``max_depth_mm`` (solver.muscle_uzawa_max_mm): an update at 0.1 mm takes 0.03/0.1 of its
     multiplier change, so Newton follows it without a failed try (without the cap: two)."""

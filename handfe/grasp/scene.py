@@ -1005,15 +1005,15 @@ class GraspFE:
                     f"{c.last_penetration_mm:.4f} mm{creep})")
             new = (c.lambda_n.x.array.copy(),
                    None if c.lambda_t is None else c.lambda_t.x.array.copy())
-            relax = relax0
+            cap = 1.0  # max_depth_mm's share of this update; the halving floor scales with it
             if max_depth_mm > 0.0 and c.last_penetration_mm > max_depth_mm:
-                relax = min(relax, max_depth_mm / c.last_penetration_mm)
-            first = relax
+                cap = max_depth_mm / c.last_penetration_mm
+            relax = first = min(relax0, cap)
             if relax < 1.0:
                 self._relax_multipliers(relax, lam, lam_t, new)
                 c.set_penalty(k)
             ok = self._resolve(what if relax == 1.0 else f"{what} x{relax:.3g}", undo)
-            while not ok and relax > 0.3 * first:
+            while not ok and relax > 0.3 * cap:
                 # under-relaxed update from the restored state: half the multiplier change,
                 # the old penalty (a full update that Newton cannot follow ended the phase)
                 relax /= 2.0
