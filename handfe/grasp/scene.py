@@ -707,6 +707,8 @@ class GraspFE:
         self._theta_response: list[np.ndarray] | None = None
         # which predictor started each FE solve of a bone step (the smallest residual wins)
         self.predictor_wins = {"extension": 0, "secant": 0, "tangent": 0}
+        # friction return mappings dropped because the solve that applied them failed
+        self.dropped_mappings = 0
 
     # -- one boundary-condition step with cutting
     def _go_to(self, theta: np.ndarray, *, label: str, max_cuts: int = 6,
@@ -729,6 +731,10 @@ class GraspFE:
         cuts = 0
         bc_conv = self.bc.ubc.x.array.copy()  # bone displacement of the last converged state
         while done_frac < 1.0 - 1e-12:
+            # the friction return mapping due from the last accepted state changes the stick
+            # anchors and tangential multipliers (a full tangential Uzawa update): kept here,
+            # so that a solve that fails with it can drop it
+            pre_map = self._contact_data() if self.contact.history_due else None
             self.contact.apply_history()
             self._lag_stabilisation()  # from the last converged state, before the predictor
             frac = min(1.0, done_frac + blend)
@@ -817,11 +823,23 @@ class GraspFE:
             self.contact.translation.value = t_conv
             cuts += 1
             self.cuts += 1
-            blend /= 2
+            # half of what was tried: after a sub-step that doubled the size, the remainder
+            # (clamped to the step's end) may be less than the size
+            blend = 0.5 * (frac - done_frac)
             self._substep = blend
             hist = " ".join(f"{r:.1e}" for r in self.solver.history[-6:])
             self.say(f"    {label}: Newton failed ({reason}; last residuals {hist}); cutting the "
                      f"step to {blend:.3g}")
+            if pre_map is not None:
+                # with the return mapping in it, a failed solve fails again at any cut (runs K
+                # and SQ: the first torque step after a failed round of the final phase, cut
+                # to 1/4096 and 1/32): the anchors and multipliers the converged state was
+                # solved with are kept, and the next accepted solve marks a new mapping due
+                self._set_contact_data(pre_map)
+                self.contact.history_due = False
+                self.dropped_mappings += 1
+                self.say(f"    {label}: the friction return mapping due from the last accepted "
+                         "state is dropped")
             if cuts > max_cuts:
                 self.bc.set(prev if done_frac == 0 else target, 1.0 if done_frac == 0 else
                             done_frac, prev)
@@ -1856,6 +1874,8 @@ class GraspFE:
                 "final_residual_N": self._residual_norm(),
                 "outer_iterations": self.outer_iterations,
                 "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
+                # friction return mappings a failed solve dropped (scene._go_to)
+                "dropped_friction_mappings": int(getattr(self, "dropped_mappings", 0)),
                 "closing_deg": getattr(self, "closing_deg", {}),
                 # friction coefficient of the kinematic closing (muscles mode: 0 with
                 # muscle_frictionless_closing; mu of the grasp otherwise)
