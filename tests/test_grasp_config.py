@@ -425,10 +425,10 @@ class _FakeUzawa:
             undo()
         return ok
 
-    def _relax_multipliers(self, relax, lam, lam_t, new):
+    def _relax_multipliers(self, relax, start, new):
         from handfe.grasp.scene import GraspFE
 
-        return GraspFE._relax_multipliers(self, relax, lam, lam_t, new)
+        return GraspFE._relax_multipliers(self, relax, start, new)
 
     def _contact_data(self):
         from handfe.grasp.scene import GraspFE
@@ -541,7 +541,14 @@ def test_converged_uzawa_update_applies_the_return_mapping_first():
     fake = _with_stick_history(_FakeUzawa())
     GraspFE.augment(fake)
     assert fake.resolves[-1][1] and not fake.contact.history_due
-    assert np.all(fake.contact.lambda_t.x.array == 1.0)  # applied once, not undone
+    # the first update converged at x0.25 (above): of the mapping's change too, not of the
+    # Uzawa change alone with the mapping at full strength
+    assert [ok for _, ok in fake.resolves[:3]] == [False, False, True]
+    assert np.all(fake.contact.lambda_t.x.array == 0.25)  # applied once, not undone
+    fake = _with_stick_history(_FakeUzawa())
+    fake.max_change = 20.0  # a full update converges: the full mapping with it
+    GraspFE.augment(fake)
+    assert np.all(fake.contact.lambda_t.x.array == 1.0)
 
 
 class _FakeMuscles:

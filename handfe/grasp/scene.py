@@ -997,8 +997,10 @@ class GraspFE:
                 return
             balanced = self._contact_data()  # what the state balances: restored on failure
             self.contact.apply_history()
-            lam = c.lambda_n.x.array.copy()
-            lam_t = None if c.lambda_t is None else c.lambda_t.x.array.copy()
+            # an under-relaxed update starts from the stick data before the due return mapping
+            # (itself a full tangential update): relaxing the Uzawa change alone left the
+            # mapping at full strength in every halved re-solve
+            start = (c.lambda_n.x.array.copy(), balanced["lambda_t"], balanced["u_ref"])
             k = float(c.k_n.value)
             done, pen = c.augment(True)  # changes the multipliers (and k_n), not the state
             if done:
@@ -1011,44 +1013,43 @@ class GraspFE:
                 c.set_penalty(max(float(c.k_n.value), 2.0 * k))
             prev = pen
 
-            def undo(lam: np.ndarray = lam, lam_t: np.ndarray | None = lam_t,
-                     k: float = k) -> None:
-                c.lambda_n.x.array[:] = lam
-                if lam_t is not None:
-                    c.lambda_t.x.array[:] = lam_t
+            def undo(start: tuple = start, k: float = k) -> None:
+                self._relax_multipliers(0.0, start, start)
                 c.set_penalty(k)
 
             creep = f", stick creep {c.last_creep_mm:.4f} mm" if c.lambda_t is not None else ""
             what = (f"Uzawa update {self.augmentations} (penetration was "
                     f"{c.last_penetration_mm:.4f} mm{creep})")
-            new = (c.lambda_n.x.array.copy(),
-                   None if c.lambda_t is None else c.lambda_t.x.array.copy())
+            new = tuple(None if f is None else f.x.array.copy()
+                        for f in (c.lambda_n, c.lambda_t, c.u_ref))
             cap = 1.0  # max_depth_mm's share of this update; the halving floor scales with it
             if max_depth_mm > 0.0 and c.last_penetration_mm > max_depth_mm:
                 cap = max_depth_mm / c.last_penetration_mm
             relax = first = min(relax0, cap)
             if relax < 1.0:
-                self._relax_multipliers(relax, lam, lam_t, new)
+                self._relax_multipliers(relax, start, new)
                 c.set_penalty(k)
             ok = self._resolve(what if relax == 1.0 else f"{what} x{relax:.3g}", undo)
             while not ok and relax > 0.3 * cap:
                 # under-relaxed update from the restored state: half the multiplier change,
                 # the old penalty (a full update that Newton cannot follow ended the phase)
                 relax /= 2.0
-                self._relax_multipliers(relax, lam, lam_t, new)
+                self._relax_multipliers(relax, start, new)
                 ok = self._resolve(f"{what} x{relax:.3g}", undo)
             if not ok:
                 self._set_contact_data(balanced)
                 return
             relax0 *= relax / first  # what the failures needed; the depth cap is per update
 
-    def _relax_multipliers(self, relax: float, lam: np.ndarray, lam_t: np.ndarray | None,
-                           new: tuple[np.ndarray, np.ndarray | None]) -> None:
-        """Multipliers = old + ``relax`` x (the Uzawa update's change)."""
+    def _relax_multipliers(self, relax: float, start: tuple, new: tuple) -> None:
+        """(lambda_n, lambda_t, u_ref) = start + ``relax`` x (new - start); None entries (no
+        friction, no augmented friction) are left alone. Between the anchors and multipliers
+        before and after a return mapping, a slipping node's traction stays on the cone."""
         c = self.contact
-        c.lambda_n.x.array[:] = lam + relax * (new[0] - lam)
-        if lam_t is not None and new[1] is not None:
-            c.lambda_t.x.array[:] = lam_t + relax * (new[1] - lam_t)
+        for name, a, b in zip(("lambda_n", "lambda_t", "u_ref"), start, new, strict=True):
+            f = getattr(c, name)
+            if f is not None and a is not None and b is not None:
+                f.x.array[:] = a + relax * (b - a)
 
     def _joint_geometry(self, skel):
         from handfe.grasp.mechanics import joint_axis_centre
