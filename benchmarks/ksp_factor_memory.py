@@ -18,16 +18,11 @@ import subprocess
 import sys
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        return int(f.read().split("VmRSS:")[1].split()[0]) / 1024.0
-
-
 def _measure(pattern: str, n: int) -> None:
     from mpi4py import MPI
     from petsc4py import PETSc
 
-    from handfe.solver import mumps_lu_ksp
+    from handfe.solver import mumps_lu_ksp, resident_memory_mb
 
     A = PETSc.Mat().createAIJ([n * n, n * n], nnz=5, comm=MPI.COMM_SELF)
     for i in range(n * n):
@@ -52,7 +47,7 @@ def _measure(pattern: str, n: int) -> None:
             ksp = mumps_lu_ksp(MPI.COMM_SELF, A)
         ksp.solve(b, x)
         ksp.destroy()  # with the "handle" pattern, pc is still referenced here
-        print(f"{pattern},{k + 1},{_rss_mb():.0f}", flush=True)
+        print(f"{pattern},{k + 1},{resident_memory_mb():.0f}", flush=True)
 
 
 def main() -> None:

@@ -255,6 +255,13 @@ class HyperelasticProblem:
 
 
 # ------------------------------------------------------------------------------------------------
+def resident_memory_mb() -> float:
+    """Resident memory of this process (MB; Linux ``/proc/self/status`` VmRSS), to watch
+    factorisations for leaks (:func:`mumps_lu_ksp`)."""
+    with open("/proc/self/status") as f:
+        return int(f.read().split("VmRSS:")[1].split()[0]) / 1024.0
+
+
 def mumps_lu_ksp(comm: MPI.Comm, A: PETSc.Mat) -> PETSc.KSP:
     """A direct solver (MUMPS LU) for ``A``; destroy it with ``ksp.destroy()``.
 

@@ -310,11 +310,6 @@ def test_admissible_step_of_the_inversion_guard():
     assert admissible_step(A, B, 0.1) == pytest.approx(14 / 32)
 
 
-def _rss_mb() -> float:
-    with open("/proc/self/status") as f:
-        return int(f.read().split("VmRSS:")[1].split()[0]) / 1024.0
-
-
 def test_mumps_lu_ksp_frees_its_factor():
     """Repeated factorisations with mumps_lu_ksp + destroy() do not grow memory. The pattern it
     replaces (a local ``pc = ksp.getPC()`` alive at ``ksp.destroy()``) kept every LU factor
@@ -323,7 +318,7 @@ def test_mumps_lu_ksp_frees_its_factor():
     ``benchmarks/ksp_factor_memory.py``)."""
     from dolfinx import mesh
 
-    from handfe.solver import mumps_lu_ksp
+    from handfe.solver import mumps_lu_ksp, resident_memory_mb
 
     msh = mesh.create_unit_square(MPI.COMM_SELF, 200, 200)
     V = fem.FunctionSpace(msh, ("CG", 1))
@@ -340,7 +335,7 @@ def test_mumps_lu_ksp_frees_its_factor():
         ksp.solve(b, x)
         assert ksp.getConvergedReason() > 0
         ksp.destroy()
-        rss.append(_rss_mb())
+        rss.append(resident_memory_mb())
     for o in (A, b, x):
         o.destroy()
     assert rss[-1] - rss[1] < 20.0, f"memory grew {rss[-1] - rss[1]:.0f} MB over 4 solves: {rss}"
