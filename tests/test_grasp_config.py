@@ -536,15 +536,28 @@ def test_uzawa_phase_with_nothing_to_do_leaves_the_return_mapping_due():
 
 
 def test_converged_uzawa_update_applies_the_return_mapping_first():
+    from types import SimpleNamespace
+
     from handfe.grasp.scene import GraspFE
 
     fake = _with_stick_history(_FakeUzawa())
+    c = fake.contact
+    c.u_ref = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
+    apply = c.apply_history
+
+    def apply_history():  # the mapping also moves the anchors of slipping nodes
+        if c.history_due:
+            c.u_ref.x.array[:] += 2.0
+        apply()
+
+    c.apply_history = apply_history
     GraspFE.augment(fake)
     assert fake.resolves[-1][1] and not fake.contact.history_due
     # the first update converged at x0.25 (above): of the mapping's change too, not of the
     # Uzawa change alone with the mapping at full strength
     assert [ok for _, ok in fake.resolves[:3]] == [False, False, True]
     assert np.all(fake.contact.lambda_t.x.array == 0.25)  # applied once, not undone
+    assert np.all(c.u_ref.x.array == 0.5)  # the anchors by the same share
     fake = _with_stick_history(_FakeUzawa())
     fake.max_change = 20.0  # a full update converges: the full mapping with it
     GraspFE.augment(fake)
