@@ -77,3 +77,22 @@ def test_hand_mesh_cache_round_trip(subject, tmp_path, monkeypatch):
     monkeypatch.setenv("HANDFE_MESH_CACHE", "0")
     assert hand_cache_path(subject, pose, parse_digits("index"), "coarse", True) is None
     assert "from_cache" not in build_hand(subject, pose, **kw).quality
+
+
+def test_cache_key_does_not_depend_on_where_the_checkout_is(subject, tmp_path, monkeypatch):
+    """The subject's and the pose's source paths enter the key relative to the checkout: a
+    second clone or a worktree reads the meshes the first one cached."""
+    import dataclasses
+
+    from handfe.paths import REPO_ROOT
+
+    monkeypatch.setenv("HANDFE_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("HANDFE_MESH_CACHE", raising=False)
+    pose = Pose.from_toml(POSE)
+    rel = dataclasses.replace(subject, source=str(subject.source).replace(f"{REPO_ROOT}/", ""))
+    rel_pose = Pose(dict(pose.values), source=str(pose.source).replace(f"{REPO_ROOT}/", ""))
+    assert str(subject.source).startswith(str(REPO_ROOT)) and rel.source != subject.source
+    key = (parse_digits("index"), "coarse", True)
+    assert hand_cache_path(subject, pose, *key) == hand_cache_path(rel, rel_pose, *key)
+    other = dataclasses.replace(subject, source="elsewhere/S01/anthropometry.toml")
+    assert hand_cache_path(other, pose, *key) != hand_cache_path(subject, pose, *key)

@@ -592,10 +592,21 @@ def hand_cache_path(subject: Anthropometry, pose: Pose, digits: tuple[str, ...],
 
     here = Path(__file__).resolve().parent
     sources = [*here.glob("*.py"), here.parent / "kinematics.py", *ANATOMY_DIR.glob("*.csv")]
-    key = {"subject": asdict(subject), "pose": sorted(pose.values.items()),
-           "pose_source": pose.source, "digits": list(digits), "level": level,
+    subj = asdict(subject)
+    subj["source"] = _in_repo(subj.get("source", ""))
+    key = {"subject": subj, "pose": sorted(pose.values.items()),
+           "pose_source": _in_repo(pose.source), "digits": list(digits), "level": level,
            "skip_far": bool(skip_far)}
     return cache_path("hand", key, sources)
+
+
+def _in_repo(text: str) -> str:
+    """``text`` with this checkout's root removed from the paths in it, so that two clones
+    (or worktrees) of the same inputs share their cached meshes (HXT meshes differ run to run,
+    so a shared mesh is also the same mesh)."""
+    from handfe.paths import REPO_ROOT
+
+    return str(text).replace(f"{REPO_ROOT}/", "")
 
 
 def _read_cached_hand(gmsh, path: Path | None) -> tuple[dict | None, str | None]:
