@@ -84,6 +84,17 @@ def _scene(ok) -> GraspFE:
 
     sc._set_contact_data = set_data
     sc._norm = lambda a: float(np.linalg.norm(a))
+
+    def snapshot():
+        return {"w": arr.array.copy(), "theta": sc.theta.copy(), "motions": sc.motions,
+                "data": sc._contact_data()}
+
+    def restore(snap):
+        set_state(snap["w"])
+        sc.theta, sc.motions = snap["theta"].copy(), snap["motions"]
+        set_data(snap["data"])
+
+    sc._snapshot, sc._restore = snapshot, restore
     sc._residual_norm = lambda: 1.0  # the predictors tie: the first (extension) wins
     return sc
 
@@ -137,8 +148,14 @@ def test_a_mapping_that_converges_is_kept():
     assert sc.dropped_mappings == 0 and sc.contact.lambda_t.x.array[0] == 1.0
 
 
-def test_failing_step_raises_after_max_cuts_with_the_converged_state_kept():
+def test_failing_step_raises_after_max_cuts_back_at_its_start():
+    # sub-step 0 -> 0.25 converged, 0.25 -> 0.5 and -> 0.375 failed: the state goes back to the
+    # step's start, where the joint angles and the bones' motions still are (kept at 0.25,
+    # the next step would have started by moving the bones back by a quarter step)
     sc = _scene(None)
-    with pytest.raises(SolverError, match="after 4 cuts"):
+    sc.contact.history_due = True  # applied by the converged sub-step, due again at the start
+    with pytest.raises(SolverError, match="after 4 cuts.*back to its start"):
         _run(sc, lambda a, b, m: b <= 0.25, max_cuts=3)
-    assert sc.problem.w.x.array[0] == pytest.approx(0.25)
+    assert sc.problem.w.x.array[0] == 0.0 and sc.bc.frac == 0.0
+    assert sc.theta[0] == 0.0 and sc.motions == "start"
+    assert sc.contact.history_due and sc.contact.lambda_t.x.array[0] == 0.0

@@ -715,7 +715,9 @@ class GraspFE:
                translation: np.ndarray | None = None) -> None:
         """Move the bones to the joint angles ``theta`` (deg) and the object to ``translation``
         (mm; default: where it is), in sub-steps cut on failure (each with the same fraction of
-        both); SolverError after ``max_cuts`` cuts, with the last converged state kept."""
+        both); SolverError after ``max_cuts`` cuts, with everything back at the step's start
+        (converged sub-steps are not kept: the joint angles stay those of the state)."""
+        start = self._snapshot()
         theta = self.kin.clamp(theta)
         dtheta = np.radians(theta - self.theta)  # the whole step, rad
         skel = self.kin.skeleton(theta)
@@ -841,11 +843,16 @@ class GraspFE:
                 self.say(f"    {label}: the friction return mapping due from the last accepted "
                          "state is dropped")
             if cuts > max_cuts:
-                self.bc.set(prev if done_frac == 0 else target, 1.0 if done_frac == 0 else
-                            done_frac, prev)
                 last = self.solver.history[-1] if self.solver.history else float("nan")
+                # back to the step's start: a converged sub-step left the bones part of the way
+                # with the joint angles (and so the next step's blend) still at the start, and
+                # the next step then began by jumping the bones back (SQr1: the first torque
+                # step of the final phase's second round failed at 1/16 and 1/32)
+                self._restore(start)
+                self.bc.set(prev, 1.0, prev)
                 raise SolverError(f"load step '{label}' did not converge after {cuts} cuts "
-                                  f"(reached {done_frac:.3g} of the step): {reason}",
+                                  f"(reached {done_frac:.3g} of the step, back to its start): "
+                                  f"{reason}",
                                   load_step=len(self.steps) + 1, load_factor=done_frac,
                                   residual=last)
         self.theta = theta
