@@ -125,8 +125,8 @@ def restore(scene, folder: Path) -> None:
         keys = np.concatenate([d["keys"][name] for d in dumps])
         arr = np.concatenate([d["snap"][name] if name in STATE else d["snap"]["contact"][name]
                               for d in dumps])
-        # nearest, not exact, keys: a mesh read back from the cache may differ from the
-        # dumping run's in the last digits, and a rounded key then flips (17.061796 vs ...795)
+        # nearest, not exact, keys (a rounded coordinate near a rounding boundary may flip);
+        # another mesh (HXT meshes differ run to run) is named instead of a KeyError
         dist, idx = cKDTree(keys * sep).query(dof_keys(V) * sep)
         if dist.max(initial=0.0) > 1e-4:
             raise SystemExit(f"{name}: the dump's mesh is not this mesh (a dof {dist.max():.2g} "
