@@ -881,10 +881,10 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
 
     calls: list[float] = []
 
-    def fake(on: bool, k: float, resolve_fails: bool = False):
+    def fake(on: bool, k: float, resolve_fails: bool = False, growth: float = 2.0):
         f = _FakeMuscles([900.0, 400.0])
         f.wf = SimpleNamespace(solver=dataclasses.replace(
-            f.wf.solver, muscle_penalty_follows_pressure=on))
+            f.wf.solver, muscle_penalty_follows_pressure=on, muscle_penalty_growth=growth))
         kn = SimpleNamespace(value=k)
 
         def stiffen(k_new):
@@ -915,6 +915,12 @@ def test_penalty_to_pressure_stiffens_only_when_asked_and_below_target():
     GraspFE._penalty_to_pressure(f)
     assert f.contact.k_n.value == pytest.approx(2.0)
     assert not any("stiffer penalty" in m for m in f.log)
+    f = fake(True, 0.25, growth=4.0)  # solver.muscle_penalty_growth: 4x per call, not 2x
+    GraspFE._penalty_to_pressure(f)
+    assert f.contact.k_n.value == pytest.approx(1.0)
+    f = fake(True, 0.25, growth=100.0)  # ... and never beyond the target
+    GraspFE._penalty_to_pressure(f)
+    assert f.contact.k_n.value == pytest.approx(2.0)
 
 
 def test_muscles_mode_retries_a_failed_load_with_the_last_balanced_penalty(monkeypatch):

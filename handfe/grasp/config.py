@@ -107,6 +107,10 @@ class SolverSpec:
     # Experimental, off: on the coarse cylinder an uncapped 7x stiffer k_n at load 0.5 made
     # the FE Newton of the next torque step fail through every cut (docs/grasp.md, 14th session)
     muscle_penalty_follows_pressure: bool = False
+    # ... by at most this factor per load (2: 7x at once on the coarse cylinder made the next
+    # torque step's FE Newton fail through every cut; the full load was then reached 1.65 mm
+    # (cylinder) / 2.4 mm (ball) deep)
+    muscle_penalty_growth: float = field(default=2.0, metadata=bounds(1.0, 100.0))
     # muscles mode: an FE solve of the torque Newton that stalls (backtracking at a contact
     # kink) at <= muscle_stall_rtol x the grip (N) is accepted, as a stall <= 1e-4 N is in
     # the closing; 0 = the closing's absolute 1e-4 N only

@@ -1539,7 +1539,8 @@ class GraspFE:
         """``solver.muscle_penalty_follows_pressure``: before a muscle load (and the final Uzawa
         phase) raise k_n towards the larger of adaptive_penalty x the pads' peak pressure /
         facet size and peak pressure / step_penetration_mm (the first alone allows 0.4 mm of
-        penalty depth on the coarse hand's 4 mm facets), at most 2x per call, keeping the
+        penalty depth on the coarse hand's 4 mm facets), at most ``muscle_penalty_growth`` x
+        per call, keeping the
         tractions of the balanced state (:meth:`RigidContact.stiffen`). Without it k_n stays
         the closing's (~1 N per digit) while the EMG load presses the pads 20-30x harder, and
         they sink in by mm: the coarse cylinder reached the full load 2.1 mm deep, and each
@@ -1556,9 +1557,9 @@ class GraspFE:
         k = float(c.k_n.value)
         p = c.uzawa.peak_pressure()
         target = p * max(c.adaptive_penalty / c.h_mm, 1.0 / self.wf.solver.step_penetration_mm)
-        # at most 2x per load: 7x at once (0.53 -> 3.91 N/mm3 on the coarse cylinder) left the
-        # FE Newton of the next torque step failing through every cut
-        target = min(target, 2.0 * k)
+        # at most muscle_penalty_growth (2) x per load: 7x at once (0.53 -> 3.91 N/mm3 on the
+        # coarse cylinder) left the FE Newton of the next torque step failing through every cut
+        target = min(target, self.wf.solver.muscle_penalty_growth * k)
         if target > k:
             before = self._contact_data()
             off = c.stiffen(target)
