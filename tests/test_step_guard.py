@@ -17,12 +17,12 @@ from test_grasp_torque_jacobian import _block, _chain  # pytest puts tests/ on s
 from handfe.grasp.fe import TwoFormNewton
 
 
-def _turn(angles, line_search: str, keep: float):
+def _turn(angles, line_search: str, keep: float, max_it: int = 60):
     comm = MPI.COMM_WORLD
     msh, problem, bc, ds = _block(comm)
     k = fem.Constant(msh, 1e-3)  # MPa/mm: the soft foundation of the torque-tangent test
     problem.add_residual(k * ufl.inner(ufl.split(problem.w)[0], problem.vu) * ds(7))
-    solver = TwoFormNewton(problem, max_it=60, guard_keep=keep)
+    solver = TwoFormNewton(problem, max_it=max_it, guard_keep=keep)
     bc.set(_chain(np.asarray(angles))[0])
     ok, its, reason = solver.solve(line_search)
     return ok, reason, solver, problem
@@ -55,3 +55,14 @@ def test_guarded_backtracking_converges_where_plain_backtracking_fails():
     assert ok, reason
     assert solver.guard.shortened >= 1
     assert problem.tissue_volume()["min_cell_J"] > 0.1
+
+
+@pytest.mark.mpi
+def test_a_failed_solve_says_when_the_guard_kept_its_steps_short():
+    # two iterations are not enough for the larger turn: the reason names the guard's part
+    ok, reason, solver, _ = _turn([0.8, -1.2], "basic", 0.1, max_it=2)
+    assert not ok
+    assert reason.startswith("-5; inversion guard shortened ")  # DIVERGED_MAX_IT
+    assert "of 2 steps" in reason
+    ok, reason, _, _ = _turn([0.8, -1.2], "bt", 0.1)  # converged: the plain reason
+    assert ok and "guard" not in reason

@@ -324,6 +324,9 @@ class TwoFormNewton:
         p = self.problem
         p.w.vector.copy(self.x)
         snes = self._snes[line_search]
+        g = self.guard
+        if g is not None:
+            shortened0, g.smallest = g.shortened, 1.0
         try:
             snes.solve(None, self.x)
         except PETSc.Error as exc:
@@ -332,6 +335,12 @@ class TwoFormNewton:
         its = snes.getIterationNumber()
         self.iterations += its
         ok = reason > 0 and all(np.isfinite(self.history))
+        guard_note = ""
+        if g is not None and g.shortened > shortened0:
+            # a failed solve whose steps the guard kept short stalled at a cell near its J
+            # bound, not (only) at a contact kink: the log says which
+            guard_note = (f"; inversion guard shortened {g.shortened - shortened0} of {its} "
+                          f"steps, to x{g.smallest:.2g} at least")
         if not ok and self.history and all(np.isfinite(self.history)) \
                 and self.history[-1] <= self.stall_atol:
             # a stall at a negligible residual (an active-set flip between two contact
@@ -341,7 +350,8 @@ class TwoFormNewton:
         if ok:
             self.x.copy(p.w.vector)
             p.w.x.scatter_forward()
-        return ok, its, str(reason)
+            return ok, its, str(reason)
+        return ok, its, str(reason) + guard_note
 
     def adopt_last_iterate(self) -> bool:
         """After a failed :meth:`solve`: make its last iterate the state if every residual of

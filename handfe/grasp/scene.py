@@ -788,6 +788,8 @@ class GraspFE:
                 # (close to the solution, they jump the kink); else the other line search from
                 # the step's start, before cutting the step
                 hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
+                if "guard" in reason:  # what kept the steps short, if it was the guard
+                    hist += reason[reason.index(";"):]
                 its0 = its
                 where = "from there"
                 res = self.solver.continue_after_stall()
