@@ -1257,6 +1257,44 @@ def test_muscles_mode_interleaved_final_phase_updates_between_torque_steps(monke
     assert resolves[-1] is True
 
 
+def test_muscle_uzawa_rtol_lets_the_torques_catch_up_before_an_update(monkeypatch):
+    # each Uzawa update of the interleaved final phase hardens the pad (here: the tissue
+    # torque 1.3x stiffer), which raises the torque residual; with muscle_uzawa_rtol the next
+    # update waits until the torque Newton has brought it back under that, without it one
+    # follows every torque step
+    from dataclasses import replace
+
+    from handfe.grasp.scene import GraspFE
+
+    def run(gate: float):
+        fake = _FakeMuscles([900.0, 400.0])
+        fake.wf.solver = replace(fake.wf.solver, muscle_final_uzawa="interleaved",
+                                 penetration_tol_mm=0.01, muscle_uzawa_rtol=gate)
+        depth = {"mm": 1.2}
+        at_update: list[float] = []
+
+        def augment(tol_mm=None, *, creep=True, stop=None, max_updates=None,
+                    max_depth_mm=0.0):
+            at_update.append(float(fake.torques()["relative"].max()))
+            if depth["mm"] > tol_mm:
+                depth["mm"] *= 0.4
+                fake.A = fake.A * 1.3
+
+        fake.contact.uzawa = type("U", (), {"penetration": lambda self: depth["mm"]})()
+        fake.augment = augment
+        fake._one_uzawa_update = lambda d: GraspFE._one_uzawa_update(fake, d)
+        fake._penalty_to_pressure = lambda resolve=False: None
+        _exact_tangent(monkeypatch, fake)
+        GraspFE.solve_muscles(fake)
+        assert depth["mm"] <= 0.01
+        assert np.all(fake.torque["relative"] <= fake.wf.solver.torque_rtol)
+        return at_update
+
+    gated = run(0.05)
+    assert len(gated) >= 5 and max(gated) <= 0.05
+    assert max(run(0.0)) > 0.05  # ungated: an update right after a step
+
+
 def test_friction_demand_matches_a_dense_search_and_a_closed_form():
     from handfe.grasp.mechanics import friction_demand
 

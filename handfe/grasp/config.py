@@ -137,6 +137,12 @@ class SolverSpec:
     # the fixed-posture re-solve pushes the deepest pad out by about this much, and the torque
     # steps follow in smaller bites; 0 = full updates (docs/grasp.md, twenty-second session)
     muscle_uzawa_max_mm: float = field(default=0.0, metadata=bounds(0.0, 10.0))
+    # muscles mode: an Uzawa update between torque steps waits until the relative torque
+    # residual is <= muscle_uzawa_rtol, so the torque Newton catches up with the last update
+    # first (and learns each digit's response ratio from consecutive steps); 0 = one after
+    # every torque step. On the ball's final phase each update raised the little finger's PIP
+    # residual back to ~0.33 before the next torque step, for seven updates (docs/grasp.md)
+    muscle_uzawa_rtol: float = field(default=0.0, metadata=bounds(0.0, 1.0))
     # muscles mode: each torque step's FE solve may also start from the linear response of the
     # condensed tangent (dw/dtheta, the solves it needs anyway) to the step's joint angles,
     # next to the elastic extension of the bone motion and the secant predictor; the one with

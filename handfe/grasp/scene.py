@@ -1642,7 +1642,8 @@ class GraspFE:
         every free joint and the object's net force is within ``rtol`` of the grip of its
         target; a joint pushed past its limit stays there (end stop). With
         ``uzawa_depth_mm`` (or ``solver.muscle_uzawa``: step_penetration_mm) one Uzawa update
-        follows every torque step that leaves the pads deeper than that, and the balance
+        follows every torque step that leaves the pads deeper than that (with
+        ``solver.muscle_uzawa_rtol``: once the torques balance to that), and the balance
         ends only once they are not. Returns (converged, why not)."""
         from handfe.grasp import fe
 
@@ -1696,11 +1697,13 @@ class GraspFE:
             if rel <= rtol and not deep:
                 self.torque = tq
                 return True, ""
-            if rel <= rtol:
-                # balanced, but the pads are deeper than step_penetration_mm: one Uzawa update
-                # and the balance goes on from there
+            if deep and rel <= max(rtol, s.muscle_uzawa_rtol):
+                # balanced (to muscle_uzawa_rtol), but the pads are deeper than the depth
+                # asked for: one Uzawa update and the balance goes on from there; the update
+                # raises the residual, which is no stall of the Newton steps
                 self._one_uzawa_update(uzawa_depth_mm)
                 last = None
+                hist.clear()
                 continue
             if last is not None:
                 rho.update(response_ratios(E.T @ last[1], E.T @ (gx - last[0]), qgroups, rho))
@@ -1778,7 +1781,8 @@ class GraspFE:
                 taken = np.concatenate([taken, (np.array(self.contact.translation.value,
                                                          dtype=float) - t_now) / L])
             last = (gx, J @ taken)
-            if uzawa and self.contact.uzawa.penetration() > uzawa_depth_mm:
+            if uzawa and s.muscle_uzawa_rtol == 0.0 \
+                    and self.contact.uzawa.penetration() > uzawa_depth_mm:
                 self._one_uzawa_update(uzawa_depth_mm)
                 last = None  # the update changed the residual: no response ratio from it
         return False, f"torque residual {rel:.3g} after {s.max_outer} iterations"
