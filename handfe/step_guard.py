@@ -65,7 +65,8 @@ class InversionGuard:
     displacement is ``split(w)[0]`` (else ``w`` itself). For P1 displacements grad u is
     constant per cell and J is checked at the centroid; for higher degrees at the vertices and
     the centroid. Owned cells only; the step scale is the minimum over ranks.
-    ``shortened`` counts the steps it scaled, ``smallest`` is the smallest scale applied."""
+    ``shortened`` counts the steps it scaled, ``smallest`` is the smallest scale applied and
+    ``min_J`` the smallest cell J at the iterates it scaled a step from."""
 
     def __init__(self, w: fem.Function, *, mixed: bool, keep: float = 0.1):
         if not 0.0 < keep < 1.0:
@@ -92,6 +93,8 @@ class InversionGuard:
         self.cells = np.arange(n_owned, dtype=np.int32)
         self.shortened = 0
         self.smallest = 1.0
+        #: the smallest cell J at an iterate whose step the guard shortened
+        self.min_J = float("inf")
 
     def scale(self, x, y) -> float:
         """The admissible fraction s of the step (x_new = x - s y), same on every rank."""
@@ -102,6 +105,7 @@ class InversionGuard:
         B = self._gy.eval(self.cells).reshape(-1, 3, 3)
         with np.errstate(invalid="ignore", over="ignore"):
             s = admissible_step(A, B, self.keep)
+        self._J = float(np.linalg.det(A).min(initial=np.inf))
         return self.comm.allreduce(s, op=MPI.MIN)
 
     def __call__(self, x, y) -> bool:
@@ -111,4 +115,5 @@ class InversionGuard:
         y.scale(s)
         self.shortened += 1
         self.smallest = min(self.smallest, s)
+        self.min_J = min(self.min_J, self.comm.allreduce(self._J, op=MPI.MIN))
         return True

@@ -63,6 +63,6 @@ def test_a_failed_solve_says_when_the_guard_kept_its_steps_short():
     ok, reason, solver, _ = _turn([0.8, -1.2], "basic", 0.1, max_it=2)
     assert not ok
     assert reason.startswith("-5; inversion guard shortened ")  # DIVERGED_MAX_IT
-    assert "of 2 steps" in reason
+    assert "of 2 steps" in reason and "smallest cell J " in reason
     ok, reason, _, _ = _turn([0.8, -1.2], "bt", 0.1)  # converged: the plain reason
     assert ok and "guard" not in reason

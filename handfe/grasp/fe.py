@@ -326,7 +326,7 @@ class TwoFormNewton:
         snes = self._snes[line_search]
         g = self.guard
         if g is not None:
-            shortened0, g.smallest = g.shortened, 1.0
+            shortened0, g.smallest, g.min_J = g.shortened, 1.0, float("inf")
         try:
             snes.solve(None, self.x)
         except PETSc.Error as exc:
@@ -340,7 +340,8 @@ class TwoFormNewton:
             # a failed solve whose steps the guard kept short stalled at a cell near its J
             # bound, not (only) at a contact kink: the log says which
             guard_note = (f"; inversion guard shortened {g.shortened - shortened0} of {its} "
-                          f"steps, to x{g.smallest:.2g} at least")
+                          f"steps, to x{g.smallest:.2g} at least; smallest cell J "
+                          f"{g.min_J:.2g}")
         if not ok and self.history and all(np.isfinite(self.history)) \
                 and self.history[-1] <= self.stall_atol:
             # a stall at a negligible residual (an active-set flip between two contact
