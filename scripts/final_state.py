@@ -20,6 +20,7 @@ equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb
 - ``cone``: the skin area whose contact quadrature points sit within a tolerance of the
   normal-contact switch (lambda_n - k_n g = 0) or of the Coulomb cone (|trial| = mu p);
 - ``linesearch``: the tight solve with PETSc's l2, cp and nleqerr line searches;
+- ``cells``: the tissue's volume change and the ten smallest-J tissue cells (where, how deep);
 - ``balance``: the tight solve, then torque Newton iterations with tight FE solves (no
   grip-scaled stall tolerance), then the tight solve again.
 
@@ -223,6 +224,55 @@ def cone(scene) -> None:
                   f"cone {b:.3e} mm2 (skin {area(1.0):.0f} mm2)")
 
 
+def cells(scene) -> None:
+    """The tissue's volume change (``GraspProblem.tissue_volume``) and the ten smallest-J
+    cells of each rank: J, the region of the nearest outer skin facet and its distance (mm,
+    reference configuration), and the cell's depth below the object (mm, deformed)."""
+    from scipy.spatial import cKDTree
+
+    from handfe.grasp.outputs import region_of
+
+    prob, model = scene.problem, scene.model
+    scene.say("tissue volume: " + ", ".join(f"{k} {v:.4g}"
+                                             for k, v in prob.tissue_volume().items()))
+    Jc = prob._J[0]  # the DG0 J that tissue_volume interpolated
+    msh = model.mesh
+    nloc = msh.topology.index_map(3).size_local
+    from handfe.grasp.fe import SKIN, SUBCUT
+
+    tissue = np.concatenate([prob._cells[SKIN], prob._cells[SUBCUT]])
+    tissue = tissue[tissue < nloc]
+    J = Jc.x.array[Jc.function_space.dofmap.list.array[tissue]]
+    low = tissue[np.argsort(J)[:10]]
+    x = msh.geometry.x
+    geo = msh.geometry.dofmap
+    centre = np.array([x[geo.links(c)].mean(axis=0) for c in low])
+    ft = model.facet_tags
+    codes = np.array(model.groups["skin_outer"])
+    msh.topology.create_connectivity(2, 0)
+    f2v = msh.topology.connectivity(2, 0)
+    fac = ft.indices[np.isin(ft.values, codes)]
+    fval = ft.values[np.isin(ft.values, codes)]
+    mids = np.array([x[f2v.links(f)].mean(axis=0) for f in fac]) if len(fac) else np.zeros((0, 3))
+    u = prob.displacement()
+    V = u.function_space
+    ux = u.x.array.reshape(-1, 3)
+    vx = V.tabulate_dof_coordinates()
+    tree_v = cKDTree(vx)
+    for c, xc in zip(low, centre, strict=True):
+        jc = float(J[tissue == c][0])
+        where = "no outer skin facet on this rank"
+        if len(mids):
+            dist, k = cKDTree(mids).query(xc)
+            where = f"{'/'.join(region_of(int(fval[k])))} skin {dist:.2f} mm away"
+        _, iv = tree_v.query(xc)
+        xd = xc + ux[iv]
+        gap = float(scene.contact.obstacle.gap_normal(
+            xd[None, :], np.asarray(scene.contact.translation.value, dtype=float))[0][0])
+        print(f"rank {prob.comm.rank}: cell J {jc:.3g} at {np.round(xc, 1)} ({where}; signed "
+              f"distance to the object {gap:.2f} mm)", flush=True)
+
+
 def linesearch(scene) -> None:
     snap, sol = scene._snapshot(), scene.solver
     for ls in ("l2", "cp", "nleqerr"):
@@ -258,7 +308,7 @@ def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = Non
                      f"{self._residual_norm():.3e} N")
         {"tighten": lambda s: s._tighten(stalled=True),
          "final-phase": lambda s: s._final_muscle_phase(), "derivatives": derivatives,
-         "cone": cone, "linesearch": linesearch, "balance": balance}[mode](self)
+         "cone": cone, "linesearch": linesearch, "balance": balance, "cells": cells}[mode](self)
         self.say(f"{mode}: {time.perf_counter() - t0:.1f} s, residual "
                  f"{self._residual_norm():.3e} N")
         self.digit_force_N = self.digit_forces()
@@ -282,7 +332,7 @@ def main() -> None:
     ap.add_argument("folder", type=Path, help="where the dump is (written by dump)")
     ap.add_argument("--mode", default="tighten",
                     choices=("tighten", "final-phase", "derivatives", "cone", "linesearch",
-                             "balance"),
+                             "balance", "cells"),
                     help="replay: what to run from the dumped state (default tighten)")
     ap.add_argument("--friction-smoothing", type=float, default=None, metavar="DELTA",
                     help="replay: round the Coulomb cone over (1 +- DELTA) mu p before the "
