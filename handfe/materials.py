@@ -37,6 +37,9 @@ from handfe.errors import InputError
 from handfe.paths import REFERENCE_DIR
 
 MODES = ("uniaxial", "equibiaxial", "shear")
+#: ... and confined compression (uniaxial strain: stretches (lambda, 1, 1), J = lambda), the
+#: state of a tissue layer squeezed between a bone and an object; compressible laws only
+HOMOGENEOUS_MODES = MODES + ("confined",)
 
 
 def _check_nu(nu: float, law: str) -> None:
@@ -652,12 +655,19 @@ def homogeneous(mat: Material, mode: str, lam: float, *,
 
     Modes: ``uniaxial`` (lambda, s, s), ``equibiaxial`` (lambda, lambda, s) - the stress reported
     is P11 = P22 - and ``shear`` = pure shear / planar tension (lambda, 1, s); ``s`` makes the free
-    faces traction-free, or is fixed by J = 1 when ``incompressible``.
+    faces traction-free, or is fixed by J = 1 when ``incompressible``. ``confined`` = uniaxial
+    strain (lambda, 1, 1): the volume changes with lambda, so compressible laws only.
     """
-    if mode not in MODES:
-        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(MODES)})")
+    if mode not in HOMOGENEOUS_MODES:
+        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(HOMOGENEOUS_MODES)})")
     if not (math.isfinite(lam) and lam > 0.0):
         raise InputError(f"stretch must be positive and finite, got {lam!r}")
+    if mode == "confined":
+        if incompressible:
+            raise InputError("confined compression changes the volume (J = stretch): not with "
+                             "exact incompressibility")
+        st = (lam, 1.0, 1.0)
+        return float(mat.principal_nominal_stress_np(*st)[0]), st
     if incompressible:
         if not mat.supports_mixed:
             raise InputError(f"{mat.law} has no incompressible form")

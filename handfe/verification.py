@@ -15,7 +15,7 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from handfe.errors import InputError
-from handfe.materials import MODES, Material
+from handfe.materials import HOMOGENEOUS_MODES, Material
 from handfe.solver import Discretisation, HyperelasticProblem, LoadStepping, NewtonOptions, solve
 
 
@@ -33,8 +33,11 @@ def cube_stress_curve(material: Material, mode: str, stretches: Sequence[float],
                       comm: MPI.Comm = MPI.COMM_WORLD, n: int = 1,
                       newton: NewtonOptions | None = None) -> np.ndarray:
     """FE nominal stress P11 (MPa) at each stretch (continuation outward from 1)."""
-    if mode not in MODES:
-        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(MODES)})")
+    if mode not in HOMOGENEOUS_MODES:
+        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(HOMOGENEOUS_MODES)})")
+    if mode == "confined" and incompressible:
+        raise InputError("confined compression changes the volume: not with exact "
+                         "incompressibility")
     lams = np.asarray(stretches, dtype=float)
     if np.any(~np.isfinite(lams)) or np.any(lams <= 0):
         raise InputError(f"stretches must be positive and finite, got {list(lams)}")
@@ -51,6 +54,9 @@ def cube_stress_curve(material: Material, mode: str, stretches: Sequence[float],
         uy = prob.fix(_facets(msh, 1, 1.0), components=(1,))
     elif mode == "shear":
         prob.fix(_facets(msh, 1, 1.0), components=(1,))
+    elif mode == "confined":
+        for axis in (1, 2):
+            prob.fix(_facets(msh, axis, 1.0), components=(axis,))
 
     state = {"lam": 1.0}
 

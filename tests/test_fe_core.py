@@ -43,6 +43,16 @@ def test_fe_cube_matches_closed_form(mat, incompressible, mode):
     assert np.max(np.abs(fe - cf)) <= 1e-6 * scale
 
 
+@pytest.mark.parametrize("mat", [Ogden.subcutaneous(nu=0.499), NeoHookean.from_E_nu(0.05, 0.45)],
+                         ids=["ogden-subcut", "neo-hookean"])
+def test_fe_cube_matches_closed_form_in_confined_compression(mat):
+    # uniaxial strain (lambda, 1, 1): a tissue layer squeezed between a bone and an object
+    lams = [0.2, 0.5, 0.9, 1.0, 1.2]
+    fe = cube_stress_curve(mat, "confined", lams, comm=MPI.COMM_SELF)
+    cf = np.array([homogeneous(mat, "confined", x)[0] for x in lams])
+    assert np.max(np.abs(fe - cf)) <= 1e-6 * np.max(np.abs(cf))
+
+
 def _cube_problem(mat, disc=None):
     msh = unit_cube(MPI.COMM_SELF, 2)
     prob = HyperelasticProblem(msh, mat, disc=disc or Discretisation())

@@ -185,3 +185,20 @@ def test_drucker_flags_an_unstable_set():
     rep = drucker_stability(m, n=151, incompressible=True)
     assert not rep.stable
     assert "UNSTABLE" in rep.describe()
+
+
+def test_confined_compression_small_strain_modulus_and_the_ogden_sets_bulk_limit():
+    """Uniaxial strain (lambda, 1, 1): at small strain P11 / (lambda - 1) is the P-wave modulus
+    kappa + 4 mu0 / 3; the brief's fat set at nu = 0.499 (kappa = 0.29 MPa) needs J ~ 0.2 to
+    carry 0.3 MPa - a pad pressure of the muscle-driven grasps - in a confined layer, where
+    nearly incompressible tissue would keep J ~ 1 (docs/grasp.md, twenty-fourth session)."""
+    fat = Ogden.subcutaneous(nu=0.499)
+    lam = 1.0 - 1e-6
+    P, st = homogeneous(fat, "confined", lam)
+    assert st == (lam, 1.0, 1.0)
+    m = fat.bulk_modulus_MPa + 4.0 / 3.0 * fat.shear_modulus_MPa
+    assert P / (lam - 1.0) == pytest.approx(m, rel=1e-4)
+    assert fat.bulk_modulus_MPa == pytest.approx(0.29, rel=0.01)
+    assert -homogeneous(fat, "confined", 0.2)[0] == pytest.approx(0.30, abs=0.01)
+    with pytest.raises(InputError, match="volume"):
+        homogeneous(fat, "confined", 0.5, incompressible=True)

@@ -17,18 +17,21 @@ as CSV on stdout with columns
 
 Modes: uniaxial (lambda, s, s), equibiaxial (lambda, lambda, s; P11 = P22 reported) and
 shear = pure shear / planar tension (lambda, 1, s). The free stretch s makes the free faces
-traction-free, or is fixed by J = 1 with --incompressible. Tension is positive.
+traction-free, or is fixed by J = 1 with --incompressible. confined = uniaxial strain
+(lambda, 1, 1; J = lambda): a tissue layer squeezed between a bone and an object, whose
+volume the law's bulk modulus alone holds. Tension is positive.
 
 Examples:
   handfe material ogden --preset skin --mode uniaxial --stretch 0.6:1.6:11 --incompressible
   handfe material mooney-rivlin --preset fingertip --mode equibiaxial --stretch 0.7:1.3:7
   handfe material neo-hookean --param E_MPa=0.05 --param nu=0.45 --mode shear --stretch 1:2:5
   handfe material ogden --preset subcutaneous --drucker 0.5:2.0
+  handfe material ogden --preset subcutaneous --param nu=0.499 --mode confined --stretch 0.1:1:10
 """
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from handfe.materials import MODES, PRESETS
+    from handfe.materials import HOMOGENEOUS_MODES, PRESETS
 
     p = sub.add_parser("material", help="stress-stretch curves of a material law (closed form "
                        "and FE)", description=HELP,
@@ -40,8 +43,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="override a parameter (MPa for moduli), e.g. mu_MPa=-0.07,0.011,0.066 "
                         "alpha=4.9,6.4,4.7 nu=0.49 C01_MPa=0.0006; for neo-hookean and "
                         "st-venant-kirchhoff E_MPa and nu may be given instead of mu/lmbda")
-    p.add_argument("--mode", choices=MODES, default="uniaxial", help="deformation mode "
-                   "(default uniaxial)")
+    p.add_argument("--mode", choices=HOMOGENEOUS_MODES, default="uniaxial",
+                   help="deformation mode (default uniaxial); confined = uniaxial strain "
+                        "(lambda, 1, 1), a tissue layer squeezed between bone and object, "
+                        "compressible laws only")
     p.add_argument("--stretch", default="0.6:1.6:11", metavar="START:STOP:N",
                    help="N stretches evenly from START to STOP (default 0.6:1.6:11), or a "
                         "comma-separated list")
