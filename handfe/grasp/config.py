@@ -205,7 +205,7 @@ class SolverSpec:
     # line search of the re-solves after a change of the contact data (Uzawa update, penalty
     # increase) from a converged state; "basic" falls back to "bt" from that state
     resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
-    nu: float = field(default=0.49, metadata=bounds(0.3, 0.4999))
+    nu: float = field(default=0.49, metadata=bounds(0.3, 0.49999))
     # shear modulus in the p1-p1s stabilisation beta h^2 / (2 mu) |grad p|^2: "initial" = the
     # small-strain mu0 (0.6-1.2 kPa), "tangent" = each cell's incremental modulus at the last
     # converged state (lagged). Under pad pressures >> mu0 the mu0 term lets the tissue lose
