@@ -18,8 +18,8 @@ as CSV on stdout with columns
 Modes: uniaxial (lambda, s, s), equibiaxial (lambda, lambda, s; P11 = P22 reported) and
 shear = pure shear / planar tension (lambda, 1, s). The free stretch s makes the free faces
 traction-free, or is fixed by J = 1 with --incompressible. confined = uniaxial strain
-(lambda, 1, 1; J = lambda): a tissue layer squeezed between a bone and an object, whose
-volume the law's bulk modulus alone holds. Tension is positive.
+(lambda, 1, 1; J = lambda): a tissue layer squeezed between a bone and an object, where
+the law's bulk modulus carries most of the load. Tension is positive.
 
 Examples:
   handfe material ogden --preset skin --mode uniaxial --stretch 0.6:1.6:11 --incompressible

@@ -109,7 +109,8 @@ class SolverSpec:
     muscle_penalty_follows_pressure: bool = False
     # ... by at most this factor per load (2: 7x at once on the coarse cylinder made the next
     # torque step's FE Newton fail through every cut; the full load was then reached 1.65 mm
-    # (cylinder) / 2.4 mm (ball) deep)
+    # (cylinder) / 2.4 mm (ball) deep; 4 made the ball's homotopy cut its torque steps at load
+    # 0.25, run SG, docs/grasp.md twenty-fourth session)
     muscle_penalty_growth: float = field(default=2.0, metadata=bounds(1.0, 100.0))
     # muscles mode: an FE solve of the torque Newton that stalls (backtracking at a contact
     # kink) at <= muscle_stall_rtol x the grip (N) is accepted, as a stall <= 1e-4 N is in
@@ -141,7 +142,9 @@ class SolverSpec:
     # residual is <= muscle_uzawa_rtol, so the torque Newton catches up with the last update
     # first (and learns each digit's response ratio from consecutive steps); 0 = one after
     # every torque step. On the ball's final phase each update raised the little finger's PIP
-    # residual back to ~0.33 before the next torque step, for seven updates (docs/grasp.md)
+    # residual back to ~0.33 before the next torque step, for seven updates; 0.1 let the
+    # torques catch up there but still failed later, and failed the cylinder recipe's final
+    # phase that passes without it (runs SQg, Qg, docs/grasp.md twenty-fourth session)
     muscle_uzawa_rtol: float = field(default=0.0, metadata=bounds(0.0, 1.0))
     # muscles mode: each torque step's FE solve may also start from the linear response of the
     # condensed tangent (dw/dtheta, the solves it needs anyway) to the step's joint angles,

@@ -1542,11 +1542,11 @@ class GraspFE:
         phase) raise k_n towards the larger of adaptive_penalty x the pads' peak pressure /
         facet size and peak pressure / step_penetration_mm (the first alone allows 0.4 mm of
         penalty depth on the coarse hand's 4 mm facets), at most ``muscle_penalty_growth`` x
-        per call, keeping the
-        tractions of the balanced state (:meth:`RigidContact.stiffen`). Without it k_n stays
-        the closing's (~1 N per digit) while the EMG load presses the pads 20-30x harder, and
-        they sink in by mm: the coarse cylinder reached the full load 2.1 mm deep, and each
-        Uzawa round at full load then moved the pads so far that a digit lifted off.
+        per call, keeping the tractions of the balanced state (:meth:`RigidContact.stiffen`).
+        Without it k_n stays the closing's (~1 N per digit) while the EMG load presses the pads
+        20-30x harder, and they sink in by mm: the coarse cylinder reached the full load 2.1 mm
+        deep, and each Uzawa round at full load then moved the pads so far that a digit
+        lifted off.
 
         ``resolve`` (the final phase): re-solve with the stiffer penalty at once, giving the
         data back if that fails. Before a muscle load the first torque step's FE solve does
