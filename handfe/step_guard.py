@@ -105,7 +105,7 @@ class InversionGuard:
         B = self._gy.eval(self.cells).reshape(-1, 3, 3)
         with np.errstate(invalid="ignore", over="ignore"):
             s = admissible_step(A, B, self.keep)
-        self._J = float(np.linalg.det(A).min(initial=np.inf))
+        self._A = A  # for min_J, only when the step is shortened
         return self.comm.allreduce(s, op=MPI.MIN)
 
     def __call__(self, x, y) -> bool:
@@ -115,5 +115,6 @@ class InversionGuard:
         y.scale(s)
         self.shortened += 1
         self.smallest = min(self.smallest, s)
-        self.min_J = min(self.min_J, self.comm.allreduce(self._J, op=MPI.MIN))
+        J = float(np.linalg.det(self._A).min(initial=np.inf))
+        self.min_J = min(self.min_J, self.comm.allreduce(J, op=MPI.MIN))
         return True

@@ -235,15 +235,10 @@ def cells(scene) -> None:
     prob, model = scene.problem, scene.model
     scene.say("tissue volume: " + ", ".join(f"{k} {v:.4g}"
                                              for k, v in prob.tissue_volume().items()))
-    Jc = prob._J[0]  # the DG0 J that tissue_volume interpolated
+    tissue, J = prob.tissue_cell_J()
+    order = np.argsort(J)[:10]
+    low = tissue[order]
     msh = model.mesh
-    nloc = msh.topology.index_map(3).size_local
-    from handfe.grasp.fe import SKIN, SUBCUT
-
-    tissue = np.concatenate([prob._cells[SKIN], prob._cells[SUBCUT]])
-    tissue = tissue[tissue < nloc]
-    J = Jc.x.array[Jc.function_space.dofmap.list.array[tissue]]
-    low = tissue[np.argsort(J)[:10]]
     x = msh.geometry.x
     geo = msh.geometry.dofmap
     centre = np.array([x[geo.links(c)].mean(axis=0) for c in low])
@@ -255,15 +250,13 @@ def cells(scene) -> None:
     fval = ft.values[np.isin(ft.values, codes)]
     mids = np.array([x[f2v.links(f)].mean(axis=0) for f in fac]) if len(fac) else np.zeros((0, 3))
     u = prob.displacement()
-    V = u.function_space
     ux = u.x.array.reshape(-1, 3)
-    vx = V.tabulate_dof_coordinates()
-    tree_v = cKDTree(vx)
-    for c, xc in zip(low, centre, strict=True):
-        jc = float(J[tissue == c][0])
+    tree_v = cKDTree(u.function_space.tabulate_dof_coordinates())
+    tree_f = cKDTree(mids) if len(mids) else None
+    for jc, xc in zip(J[order], centre, strict=True):
         where = "no outer skin facet on this rank"
-        if len(mids):
-            dist, k = cKDTree(mids).query(xc)
+        if tree_f is not None:
+            dist, k = tree_f.query(xc)
             where = f"{'/'.join(region_of(int(fval[k])))} skin {dist:.2f} mm away"
         _, iv = tree_v.query(xc)
         xd = xc + ux[iv]

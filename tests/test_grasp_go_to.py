@@ -15,6 +15,7 @@ class _Solver:
     end of the attempted sub-step, ``mapped`` whether the return mapping was applied."""
 
     line_search = "bt"
+    guard_note = ""
 
     def __init__(self, scene, ok):
         self.scene, self.ok = scene, ok

@@ -174,6 +174,22 @@ class GraspProblem:
         self.mu0.x.scatter_forward()
         return self.comm.allreduce(change, op=MPI.MAX)
 
+    def tissue_cell_J(self) -> tuple[np.ndarray, np.ndarray]:
+        """The owned skin and subcutaneous cells (local indices) and each one's J = det F at
+        the current state (exact on P1 tets)."""
+        if getattr(self, "_J", None) is None:
+            D0 = fem.FunctionSpace(self.mesh, ("DG", 0))
+            Jf = ufl.det(ufl.Identity(3) + ufl.grad(self.u))
+            tissue_dx = self.dx((SKIN, SUBCUT))
+            self._J = (fem.Function(D0), fem.Expression(Jf, D0.element.interpolation_points()),
+                       fem.form(1.0 * tissue_dx), fem.form(Jf * tissue_dx))
+        Jc, expr, _, _ = self._J
+        Jc.interpolate(expr)
+        nloc = self.mesh.topology.index_map(3).size_local
+        tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
+        tissue = tissue[tissue < nloc]
+        return tissue, Jc.x.array[Jc.function_space.dofmap.list.array[tissue]]
+
     def tissue_volume(self) -> dict[str, float]:
         """Volume change of the skin and subcutaneous tissue: J = det F of each owned cell (at
         its centre; exact on P1 tets), the smallest and largest J, the share of cells with
@@ -181,17 +197,8 @@ class GraspProblem:
         (nu 0.499) keeps J ~ 1; cells far from 1 mean the element lets it lose volume
         (p1-p1s stabilised with mu0 under pad pressures: cell J 0.1-0.3 under the pads,
         docs/grasp.md)."""
-        if getattr(self, "_J", None) is None:
-            D0 = fem.FunctionSpace(self.mesh, ("DG", 0))
-            Jf = ufl.det(ufl.Identity(3) + ufl.grad(self.u))
-            tissue_dx = self.dx((SKIN, SUBCUT))
-            self._J = (fem.Function(D0), fem.Expression(Jf, D0.element.interpolation_points()),
-                       fem.form(1.0 * tissue_dx), fem.form(Jf * tissue_dx))
-        Jc, expr, f0, f1 = self._J
-        Jc.interpolate(expr)
-        nloc = self.mesh.topology.index_map(3).size_local
-        tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
-        J = Jc.x.array[Jc.function_space.dofmap.list.array[tissue[tissue < nloc]]]
+        _, J = self.tissue_cell_J()
+        _, _, f0, f1 = self._J
         comm = self.comm
         n = comm.allreduce(len(J), op=MPI.SUM)
         low = comm.allreduce(int(np.count_nonzero(J < 0.9)), op=MPI.SUM)
@@ -224,6 +231,9 @@ class TwoFormNewton:
     compiled separately; Dirichlet rows from ``problem.bcs``."""
 
     _count = 0
+    #: after a solve whose steps the inversion guard kept short, "; inversion guard shortened
+    #: ..." (a stall at a cell near its J bound, not only at a contact kink), else ""
+    guard_note = ""
 
     def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
                  max_it: int = 25, guard_keep: float = 0.0):
@@ -325,6 +335,7 @@ class TwoFormNewton:
         p.w.vector.copy(self.x)
         snes = self._snes[line_search]
         g = self.guard
+        self.guard_note = ""
         if g is not None:
             shortened0, g.smallest, g.min_J = g.shortened, 1.0, float("inf")
         try:
@@ -335,13 +346,10 @@ class TwoFormNewton:
         its = snes.getIterationNumber()
         self.iterations += its
         ok = reason > 0 and all(np.isfinite(self.history))
-        guard_note = ""
         if g is not None and g.shortened > shortened0:
-            # a failed solve whose steps the guard kept short stalled at a cell near its J
-            # bound, not (only) at a contact kink: the log says which
-            guard_note = (f"; inversion guard shortened {g.shortened - shortened0} of {its} "
-                          f"steps, to x{g.smallest:.2g} at least; smallest cell J "
-                          f"{g.min_J:.2g}")
+            self.guard_note = (f"; inversion guard shortened {g.shortened - shortened0} of "
+                               f"{its} steps, to x{g.smallest:.2g} at least; smallest cell J "
+                               f"{g.min_J:.2g}")
         if not ok and self.history and all(np.isfinite(self.history)) \
                 and self.history[-1] <= self.stall_atol:
             # a stall at a negligible residual (an active-set flip between two contact
@@ -352,7 +360,7 @@ class TwoFormNewton:
             self.x.copy(p.w.vector)
             p.w.x.scatter_forward()
             return ok, its, str(reason)
-        return ok, its, str(reason) + guard_note
+        return ok, its, str(reason) + self.guard_note
 
     def adopt_last_iterate(self) -> bool:
         """After a failed :meth:`solve`: make its last iterate the state if every residual of

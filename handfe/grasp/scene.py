@@ -787,9 +787,9 @@ class GraspFE:
                 # may invert cells (NaN). Full steps go on from where backtracking stopped
                 # (close to the solution, they jump the kink); else the other line search from
                 # the step's start, before cutting the step
-                hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:])
-                if "guard" in reason:  # what kept the steps short, if it was the guard
-                    hist += reason[reason.index(";"):]
+                # ... and what kept the steps short, if it was the inversion guard
+                hist = " ".join(f"{r:.1e}" for r in self.solver.history[-3:]) \
+                    + self.solver.guard_note
                 its0 = its
                 where = "from there"
                 res = self.solver.continue_after_stall()
