@@ -8,13 +8,15 @@ Uzawa to 0.01 mm) - a pad pressed onto an object. The stabilisation of ``p1-p1s`
 times mu0 it lets the tissue lose volume where the pressure varies (docs/grasp.md).
 ``--tangent`` sets mu to each cell's incremental shear modulus at the current state
 (:meth:`GraspProblem.update_stabilisation`, lagged: updated before each step and re-solved
-until it changes < 2 %). Prints CSV: element, stabilisation, n, press_mm, force_N,
-contact_area_mm2, mean_pressure_kPa, cell_J_min, cell_J_max, volume_ratio, seconds;
-``--curve FILE`` writes force and area after every load step, to compare the elements' areas
-at equal force (the grasp's angles mode closes each digit to a force).
+until it changes < 2 %); ``--pressure-factor C`` takes at least C |p| (grasp key
+``solver.stabilisation_modulus = "pressure"``). Prints CSV: element, stabilisation, n,
+press_mm, force_N, contact_area_mm2, mean_pressure_kPa, cell_J_min, cell_J_max, volume_ratio,
+seconds; ``--curve FILE`` writes force and area after every load step, to compare the
+elements' areas at equal force (the grasp's angles mode closes each digit to a force).
 
     .venv/bin/python benchmarks/p1p1s_compression.py --n 5,10 --press 3.0
     .venv/bin/python benchmarks/p1p1s_compression.py --n 5,10 --press 3.0 --tangent
+    .venv/bin/python benchmarks/p1p1s_compression.py --n 5,10 --press 3.0 --pressure-factor 10
     .venv/bin/python benchmarks/p1p1s_compression.py --n 5,8 --element taylor-hood --steps 60
 """
 
@@ -39,10 +41,13 @@ L_MM, H_MM, R_MM = 12.0, 5.0, 15.0
 
 def press_block(n: int, press_mm: float, element: str = "p1-p1s", tangent: bool = False,
                 steps: int = 20, comm=MPI.COMM_WORLD,
-                curve: list[dict[str, float]] | None = None) -> dict[str, float]:
+                curve: list[dict[str, float]] | None = None,
+                pressure_factor: float = 0.0) -> dict[str, float]:
     """Press the block by ``press_mm``; the contact force (N), area (mm^2), mean pressure
     (kPa) and cell J range at the end. ``curve``, if given, gets press, force and area after
-    every load step (an element's area at a given force, not only at a given press)."""
+    every load step (an element's area at a given force, not only at a given press).
+    ``pressure_factor`` > 0 (with ``tangent``): the stabilisation modulus is at least that
+    x |p|."""
     t0 = time.perf_counter()
     msh = mesh.create_box(comm, [np.zeros(3), np.array([L_MM, L_MM, H_MM])],
                           [n, n, max(2, n * 5 // 12)], mesh.CellType.tetrahedron)
@@ -77,7 +82,7 @@ def press_block(n: int, press_mm: float, element: str = "p1-p1s", tangent: bool 
         bc.set({"b": (np.eye(3), np.array([0.0, 0.0, d]))})
         bc.predict(old)
         if tangent:
-            prob.update_stabilisation()
+            prob.update_stabilisation(pressure_factor)
         solve(f"press {d:.3f} mm")
         if curve is not None:
             m = contact.metrics()
@@ -85,7 +90,7 @@ def press_block(n: int, press_mm: float, element: str = "p1-p1s", tangent: bool 
                           "contact_area_mm2": m.contact_area_mm2,
                           "mean_pressure_kPa": m.mean_pressure_kPa})
     for _ in range(10 if tangent else 0):
-        change = prob.update_stabilisation()
+        change = prob.update_stabilisation(pressure_factor)
         solve("stabilisation update")
         if change < 0.02:
             break
@@ -104,20 +109,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--element", default="p1-p1s", help="p1-p1s (default) or taylor-hood")
     ap.add_argument("--tangent", action="store_true",
                     help="p1-p1s: stabilise with the incremental shear modulus, not mu0")
+    ap.add_argument("--pressure-factor", type=float, default=0.0, metavar="C",
+                    help="p1-p1s: stabilise with max(incremental shear modulus, C |p|) "
+                    "(implies --tangent)")
     ap.add_argument("--steps", type=int, default=20, help="load steps")
     ap.add_argument("--curve", metavar="CSV",
                     help="also write press_mm, force_N, contact_area_mm2, mean_pressure_kPa "
                     "after every load step (one block of rows per n) to this file")
     a = ap.parse_args(argv)
     comm = MPI.COMM_WORLD
-    stab = "-" if a.element != "p1-p1s" else ("tangent" if a.tangent else "mu0")
+    if a.pressure_factor > 0.0:
+        a.tangent = True
+    stab = ("-" if a.element != "p1-p1s" else f"pressure {a.pressure_factor:g}"
+            if a.pressure_factor > 0.0 else "tangent" if a.tangent else "mu0")
     if comm.rank == 0:
         print("element,stabilisation,n,press_mm,force_N,contact_area_mm2,mean_pressure_kPa,"
               "cell_J_min,cell_J_max,volume_ratio,seconds")
     rows: list[str] = []
     for n in (int(x) for x in a.n.split(",")):
         curve: list[dict[str, float]] = []
-        r = press_block(n, a.press, a.element, a.tangent, a.steps, curve=curve)
+        r = press_block(n, a.press, a.element, a.tangent, a.steps, curve=curve,
+                        pressure_factor=a.pressure_factor)
         rows += [f"{a.element},{stab},{n},{c['press_mm']:.4f},{c['force_N']:.5f},"
                  f"{c['contact_area_mm2']:.3f},{c['mean_pressure_kPa']:.2f}" for c in curve]
         if comm.rank == 0:

@@ -87,6 +87,13 @@ def test_contact_scheme_options_validated(tmp_path):
                          'stabilisation_modulus = "tangent"\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*stabilisation_modulus.*p1-p0"):
         load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\nelement = "taylor-hood"\n[solver]\n'
+                         'stabilisation_modulus = "pressure"\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'pressure'.*taylor-hood"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nstabilisation_pressure_factor = 0.0\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*stabilisation_pressure_factor.*0"):
+        load_workflow(p)
 
 
 def test_secant_closing_increment():

@@ -65,6 +65,50 @@ def test_tangent_stabilisation_takes_the_cells_incremental_shear_modulus():
     np.testing.assert_allclose(prob.mu0.x.array, expect, rtol=1e-9)
 
 
+@pytest.mark.mpi
+def test_pressure_stabilisation_takes_at_least_the_factor_times_the_cells_pressure():
+    """``update_stabilisation(c)``: each tissue cell's modulus is max(incremental modulus,
+    c |p|) with p the cell's mean pressure (here p = 2e-4 x MPa, tension and compression),
+    the same on 1 and 2 ranks; where c |p| is below the incremental modulus it is kept."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from dolfinx import fem, mesh
+    from mpi4py import MPI
+
+    from handfe.grasp.fe import SKIN, GraspProblem
+    from handfe.materials import Ogden
+
+    comm = MPI.COMM_WORLD
+    msh = mesh.create_box(comm, [np.array([-2.0, 0.0, 0.0]), np.array([2.0, 4.0, 2.0])],
+                          [4, 2, 1], mesh.CellType.tetrahedron)
+    nc = msh.topology.index_map(3).size_local
+    ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), np.full(nc, SKIN, np.int32))
+    ft = mesh.meshtags(msh, 2, np.zeros(0, np.int32), np.zeros(0, np.int32))
+    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={})
+    fat = Ogden.subcutaneous(nu=0.499)
+    prob = GraspProblem(model, fat, fat, element="p1-p1s")
+    mu0 = sum(fat.mu_MPa)
+    P = prob.W.sub(1).collapse()[0]
+    p = fem.Function(P)
+    p.interpolate(lambda x: 2e-4 * x[0])  # MPa: from 0.4 kPa of tension to 0.4 kPa of pressure
+    prob.w.sub(1).interpolate(p)
+    prob.w.x.scatter_forward()
+    change = prob.update_stabilisation(10.0)
+    ncell = msh.topology.index_map(3).size_local + msh.topology.index_map(3).num_ghosts
+    cells = np.arange(ncell, dtype=np.int32)
+    xc = mesh.compute_midpoints(msh, 3, cells)[:, 0]
+    expect = np.maximum(mu0, 10.0 * 2e-4 * np.abs(xc))
+    got = prob.mu0.x.array[prob.mu0.function_space.dofmap.list.array[cells]]
+    np.testing.assert_allclose(got, expect, rtol=1e-9)
+    assert (expect == mu0).any() and (expect > 3.0 * mu0).any()
+    assert change == pytest.approx(comm.allreduce(float(expect.max()), op=MPI.MAX) / mu0 - 1.0,
+                                   rel=1e-9)
+    top = comm.allreduce(float(expect.max()), op=MPI.MAX)
+    assert prob.update_stabilisation() == pytest.approx(1.0 - mu0 / top, rel=1e-9)  # back
+    np.testing.assert_allclose(prob.mu0.x.array, mu0, rtol=1e-12)
+
+
 def _block_problem():
     from types import SimpleNamespace
 

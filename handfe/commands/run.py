@@ -11,7 +11,8 @@ The hand is meshed in the subject's measured grasp posture (glove angles, or the
 file) with only the participating digits; the rigid object (grasps/*.toml) is placed in the grasp
 cavity just short of contact. Bones are rigid and move as boundary conditions; skin and
 subcutaneous tissue are Ogden N=3 (near-incompressible; element p1-p1s: P1 displacement +
-stabilised continuous P1 pressure, solver.stabilisation_modulus "initial" or "tangent");
+stabilised continuous P1 pressure, solver.stabilisation_modulus "initial", "tangent" or
+"pressure");
 contact is augmented-Lagrangian (penetration <= 0.01 mm) with Coulomb friction (mu 0.74).
 
 Loading:

@@ -213,9 +213,13 @@ class SolverSpec:
     # small-strain mu0 (0.6-1.2 kPa), "tangent" = each cell's incremental modulus at the last
     # converged state (lagged). Under pad pressures >> mu0 the mu0 term lets the tissue lose
     # volume and soften: a fat block pressed 3 mm into a ball carries 0.62 N with mu0, 1.22 N
-    # with the tangent modulus (n = 10; benchmarks/p1p1s_compression.py, docs/grasp.md)
+    # with the tangent modulus (n = 10; benchmarks/p1p1s_compression.py, docs/grasp.md);
+    # "pressure" = the tangent one but at least stabilisation_pressure_factor x |p| (the cell's
+    # mean pressure): a cell's volume error is then bounded by the relative pressure change
     stabilisation_modulus: str = field(default="initial", metadata=choices("initial",
-                                                                          "tangent"))
+                                                                          "tangent",
+                                                                          "pressure"))
+    stabilisation_pressure_factor: float = field(default=10.0, metadata=bounds(0.1, 1000.0))
 
 
 @dataclass(frozen=True)
@@ -276,8 +280,9 @@ def load_workflow(path: str | Path) -> Workflow:
         p = WORKFLOWS_DIR / f"{path}.toml"
     wf = load(Workflow, p)
     wf = replace(wf, source=str(p))
-    if wf.solver.stabilisation_modulus == "tangent" and wf.element != "p1-p1s":
-        raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = 'tangent' stabilises the "
+    if wf.solver.stabilisation_modulus != "initial" and wf.element != "p1-p1s":
+        raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = "
+                          f"{wf.solver.stabilisation_modulus!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")
     wf.subject_dir()
     wf.grasp_spec()

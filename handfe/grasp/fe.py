@@ -155,19 +155,35 @@ class GraspProblem:
         if getattr(self, "kernel", None) is not None:
             self.kernel.refresh_parameters()
 
-    def update_stabilisation(self) -> float:
+    def update_stabilisation(self, pressure_factor: float = 0.0) -> float:
         """Set the stabilisation's shear modulus of the tissue cells to their incremental one
         at the current state (:meth:`OgdenP1Kernel.shear_modulus`, at least mu0) instead of the
         small-strain mu0. With mu0 (0.6-1.2 kPa for the brief's sets) under pad pressures of
         100-500 kPa the term beta h^2 / mu0 |grad p|^2 lets the tissue lose volume wherever
-        the pressure varies: cell J 0.1-0.3 under the pads of the coarse cylinder. The
-        modulus is lagged (a coefficient, not differentiated): call between solves, and
+        the pressure varies: cell J 0.1-0.3 under the pads of the coarse cylinder.
+
+        ``pressure_factor`` c > 0 takes at least c |p| (p the cell's mean pressure, MPa). The
+        term relaxes a cell's volume constraint by about beta delta_p / mu (delta_p the
+        pressure change across the cell); with mu >= c |p| that is at most
+        (beta / c) delta_p / |p|, 2 % per unit relative pressure change for beta = 0.2 and
+        c = 10, however far the pressure has risen above the tissue's shear stiffness.
+
+        The modulus is lagged (a coefficient, not differentiated): call between solves, and
         re-solve. Returns the largest relative change of a cell's modulus (all ranks)."""
         if self.kernel is None:
             raise ValueError("update_stabilisation needs the NumPy Ogden kernel (P1)")
         cell_dof = self.mu0.function_space.dofmap.list.array
         tissue = np.concatenate([self._cells[SKIN], self._cells[SUBCUT]])
         new = self.kernel.shear_modulus()[tissue]
+        if pressure_factor > 0.0:
+            if getattr(self, "_pcell", None) is None:
+                D0 = self.mu0.function_space
+                self._pcell = (fem.Function(D0), fem.Expression(
+                    self.w.sub(1), D0.element.interpolation_points()))
+            pc, expr = self._pcell
+            pc.interpolate(expr)  # local and ghost cells: the same on every rank
+            p_cell = pc.x.array[pc.function_space.dofmap.list.array[tissue]]
+            new = np.maximum(new, pressure_factor * np.abs(p_cell))
         old = self.mu0.x.array[cell_dof[tissue]]
         change = float(np.max(np.abs(new - old) / old, initial=0.0))
         self.mu0.x.array[cell_dof[tissue]] = new

@@ -864,10 +864,14 @@ class GraspFE:
     def _lag_stabilisation(self) -> None:
         """``solver.stabilisation_modulus = "tangent"``: the p1-p1s stabilisation takes each
         tissue cell's incremental shear modulus at the current (converged) state for the next
-        solve (:meth:`GraspProblem.update_stabilisation`); it enters the pressure equation
+        solve (:meth:`GraspProblem.update_stabilisation`); ``"pressure"``: at least
+        ``stabilisation_pressure_factor`` x the cell's |p|. It enters the pressure equation
         only, so torques and contact forces of a state do not depend on it directly."""
-        if self.wf.solver.stabilisation_modulus == "tangent":
+        s = self.wf.solver
+        if s.stabilisation_modulus == "tangent":
             self.problem.update_stabilisation()
+        elif s.stabilisation_modulus == "pressure":
+            self.problem.update_stabilisation(s.stabilisation_pressure_factor)
 
     def _contact_data(self) -> dict[str, Any]:
         """The contact data a solve balances (multipliers, stick anchors, penalty) and whether
