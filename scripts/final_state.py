@@ -226,44 +226,19 @@ def cone(scene) -> None:
 
 def cells(scene) -> None:
     """The tissue's volume change (``GraspProblem.tissue_volume``) and the ten smallest-J
-    cells of each rank: J, the region of the nearest outer skin facet and its distance (mm,
-    reference configuration), and the cell's depth below the object (mm, deformed)."""
-    from scipy.spatial import cKDTree
+    cells (:func:`handfe.grasp.outputs.smallest_tissue_cells`: J, the region of the nearest
+    outer skin facet and its distance, mm, reference configuration, and the signed distance
+    of the deformed centre to the object, mm)."""
+    from handfe.grasp.outputs import smallest_tissue_cells
 
-    from handfe.grasp.outputs import region_of
-
-    prob, model = scene.problem, scene.model
+    prob = scene.problem
     scene.say("tissue volume: " + ", ".join(f"{k} {v:.4g}"
                                              for k, v in prob.tissue_volume().items()))
-    tissue, J = prob.tissue_cell_J()
-    order = np.argsort(J)[:10]
-    low = tissue[order]
-    msh = model.mesh
-    x = msh.geometry.x
-    geo = msh.geometry.dofmap
-    centre = np.array([x[geo.links(c)].mean(axis=0) for c in low])
-    ft = model.facet_tags
-    codes = np.array(model.groups["skin_outer"])
-    msh.topology.create_connectivity(2, 0)
-    f2v = msh.topology.connectivity(2, 0)
-    fac = ft.indices[np.isin(ft.values, codes)]
-    fval = ft.values[np.isin(ft.values, codes)]
-    mids = np.array([x[f2v.links(f)].mean(axis=0) for f in fac]) if len(fac) else np.zeros((0, 3))
-    u = prob.displacement()
-    ux = u.x.array.reshape(-1, 3)
-    tree_v = cKDTree(u.function_space.tabulate_dof_coordinates())
-    tree_f = cKDTree(mids) if len(mids) else None
-    for jc, xc in zip(J[order], centre, strict=True):
-        where = "no outer skin facet on this rank"
-        if tree_f is not None:
-            dist, k = tree_f.query(xc)
-            where = f"{'/'.join(region_of(int(fval[k])))} skin {dist:.2f} mm away"
-        _, iv = tree_v.query(xc)
-        xd = xc + ux[iv]
-        gap = float(scene.contact.obstacle.gap_normal(
-            xd[None, :], np.asarray(scene.contact.translation.value, dtype=float))[0][0])
-        print(f"rank {prob.comm.rank}: cell J {jc:.3g} at {np.round(xc, 1)} ({where}; signed "
-              f"distance to the object {gap:.2f} mm)", flush=True)
+    for c in smallest_tissue_cells(prob, scene.model, scene.obstacle,
+                                   scene.contact.translation.value, k=10):
+        scene.say(f"cell J {c['J']:.3g} at {c['centre_mm']} ({c['nearest_skin']} skin "
+                  f"{c['skin_distance_mm']:.2f} mm away; signed distance to the object "
+                  f"{c['object_distance_mm']:.2f} mm)")
 
 
 def linesearch(scene) -> None:

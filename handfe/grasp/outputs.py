@@ -271,3 +271,56 @@ def draw_pressure_map(data: dict[str, np.ndarray], hand_R: np.ndarray, path: Pat
     fig.savefig(path)
     plt.close(fig)
     return vmax
+
+
+def smallest_tissue_cells(problem, model, obstacle, translation, k: int = 5
+                          ) -> list[dict[str, object]]:
+    """Where the tissue lost the most volume: the ``k`` tissue cells of smallest J = det F
+    (all ranks), each with its centre (mm, reference configuration), the region of the
+    nearest outer skin facet and that facet's distance (mm, reference) and the signed distance
+    of the deformed centre to the object (mm, < 0 inside). The same list on every rank and
+    for any partition."""
+    from dolfinx.mesh import compute_midpoints
+    from scipy.spatial import cKDTree
+
+    comm, msh = problem.comm, model.mesh
+    def first(J: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        # ties (equal J in congruent cells) broken by the centre: the same on any partition
+        c = np.round(centre, 6)
+        return np.lexsort((c[:, 2], c[:, 1], c[:, 0], np.round(J, 12)))[:k]
+
+    tissue, J = problem.tissue_cell_J()
+    tissue = tissue.astype(np.int32)
+    centre = compute_midpoints(msh, 3, tissue) if len(tissue) else np.zeros((0, 3))
+    order = first(J, centre)
+    cells, centre = tissue[order], centre[order]
+    u = problem.displacement()
+    udof = u.function_space.dofmap.list.array.reshape(-1, 4)  # P1 tets: 4 vertex blocks
+    ux = u.x.array.reshape(-1, 3)
+    moved = centre + ux[udof[cells]].mean(axis=1) if len(cells) else centre
+    cand = comm.allgather((J[order], centre, moved))
+    Jall = np.concatenate([c[0] for c in cand])
+    keep = first(Jall, np.concatenate([c[1] for c in cand]))
+    Jall = Jall[keep]
+    centre = np.concatenate([c[1] for c in cand])[keep]
+    moved = np.concatenate([c[2] for c in cand])[keep]
+    ft = model.facet_tags
+    on = np.isin(ft.values, np.asarray(model.groups["skin_outer"]))
+    fac, fval = ft.indices[on], ft.values[on]
+    near = np.full(len(keep), np.inf)
+    code = np.zeros(len(keep), dtype=np.int64)
+    if len(fac) and len(keep):
+        near, i = cKDTree(compute_midpoints(msh, 2, fac)).query(centre)
+        code = fval[i].astype(np.int64)
+    best = comm.allgather((near, code))
+    gap = obstacle.gap_normal(moved, np.asarray(translation, dtype=float))[0] \
+        if len(keep) else np.zeros(0)
+    out: list[dict[str, object]] = []
+    for j in range(len(keep)):
+        dist, c = min((float(b[0][j]), int(b[1][j])) for b in best)
+        out.append({"J": float(Jall[j]), "centre_mm": [round(float(v), 3) for v in centre[j]],
+                    "nearest_skin": "/".join(region_of(c)).rstrip("/")
+                    if np.isfinite(dist) else "",
+                    "skin_distance_mm": round(dist, 3),
+                    "object_distance_mm": round(float(gap[j]), 3)})
+    return out

@@ -1855,6 +1855,8 @@ class GraspFE:
         return region_metrics(fd, self.problem.comm), fd
 
     def report(self) -> dict[str, Any]:
+        from handfe.grasp.outputs import smallest_tissue_cells
+
         tq = self.torque or self.torques()
         joints = {}
         for i, j in enumerate(self.joints):
@@ -1902,8 +1904,12 @@ class GraspFE:
                 "stalled_digits": self.stalled,
                 "digit_force_N": getattr(self, "digit_force_N", {}),
                 "penalty_N_per_mm3": float(self.contact.k_n.value),
-                # J of the tissue cells: how much volume the element lets the tissue lose
-                "tissue_volume": self.problem.tissue_volume(),
+                # J of the tissue cells: how much volume the element lets the tissue lose,
+                # and where the five smallest are
+                "tissue_volume": {**self.problem.tissue_volume(),
+                                  "smallest_cells": smallest_tissue_cells(
+                                      self.problem, self.model, self.obstacle,
+                                      self.contact.translation.value)},
                 "steps": self.steps}
 
     def write_fields(self, path: Path) -> None:
