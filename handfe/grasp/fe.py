@@ -163,10 +163,10 @@ class GraspProblem:
         the pressure varies: cell J 0.1-0.3 under the pads of the coarse cylinder.
 
         ``pressure_factor`` c > 0 takes at least c |p| (p the cell's mean pressure, MPa). The
-        term relaxes a cell's volume constraint by about beta delta_p / mu (delta_p the
-        pressure change across the cell); with mu >= c |p| that is at most
-        (beta / c) delta_p / |p|, 2 % per unit relative pressure change for beta = 0.2 and
-        c = 10, however far the pressure has risen above the tissue's shear stiffness.
+        term relaxes the volume constraint by the order of beta delta_p / mu (delta_p the
+        pressure change across a cell); with mu >= c |p| that is of the order of
+        (beta / c) delta_p / |p|, however far the pressure has risen above the tissue's shear
+        stiffness (not where |p| is small and changes by more than itself across a cell).
 
         The modulus is lagged (a coefficient, not differentiated): call between solves, and
         re-solve. Returns the largest relative change of a cell's modulus (all ranks)."""
