@@ -87,6 +87,11 @@ def test_contact_scheme_options_validated(tmp_path):
                          'stabilisation_modulus = "tangent"\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*stabilisation_modulus.*p1-p0"):
         load_workflow(p)
+    # the default ("tangent", docs/grasp.md twenty-fifth session) does not stop other elements
+    assert load_workflow(_write(tmp_path, 'grasp = "precision"\n')).solver \
+        .stabilisation_modulus == "tangent"
+    assert load_workflow(_write(tmp_path, 'grasp = "precision"\nelement = "p1-p0"\n')) \
+        .element == "p1-p0"
     p = _write(tmp_path, 'grasp = "precision"\nelement = "taylor-hood"\n[solver]\n'
                          'stabilisation_modulus = "pressure"\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*'pressure'.*taylor-hood"):

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from handfe.config import bounds, choices, load
+from handfe.config import bounds, choices, load, load_toml
 from handfe.errors import ConfigError
 from handfe.kinematics import DIGITS
 from handfe.paths import GRASPS_DIR, REPO_ROOT, WORKFLOWS_DIR
@@ -209,14 +209,14 @@ class SolverSpec:
     # increase) from a converged state; "basic" falls back to "bt" from that state
     resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
     nu: float = field(default=0.49, metadata=bounds(0.3, 0.49999))
-    # shear modulus in the p1-p1s stabilisation beta h^2 / (2 mu) |grad p|^2: "initial" = the
-    # small-strain mu0 (0.6-1.2 kPa), "tangent" = each cell's incremental modulus at the last
-    # converged state (lagged). Under pad pressures >> mu0 the mu0 term lets the tissue lose
-    # volume and soften: a fat block pressed 3 mm into a ball carries 0.62 N with mu0, 1.22 N
-    # with the tangent modulus (n = 10; benchmarks/p1p1s_compression.py, docs/grasp.md);
-    # "pressure" = the tangent one but at least stabilisation_pressure_factor x |p| (the cell's
-    # mean pressure): a cell's volume error is then bounded by the relative pressure change
-    stabilisation_modulus: str = field(default="initial", metadata=choices("initial",
+    # shear modulus in the p1-p1s stabilisation beta h^2 / (2 mu) |grad p|^2: "tangent" = each
+    # cell's incremental modulus at the last converged state (lagged); "initial" = the
+    # small-strain mu0 (0.6-1.2 kPa), the default until 5 Dec 2026: against a Taylor-Hood run of
+    # the coarse pinch its pads had about half the contact area and 31-73 % higher peaks,
+    # "tangent" -31..+3 % and -6..+11 % (docs/grasp.md, twenty-fifth session); "pressure" =
+    # the tangent one but at least stabilisation_pressure_factor x |p| (the cell's mean
+    # pressure). Ignored by the other elements (no such term)
+    stabilisation_modulus: str = field(default="tangent", metadata=choices("initial",
                                                                           "tangent",
                                                                           "pressure"))
     stabilisation_pressure_factor: float = field(default=10.0, metadata=bounds(0.1, 1000.0))
@@ -280,9 +280,9 @@ def load_workflow(path: str | Path) -> Workflow:
         p = WORKFLOWS_DIR / f"{path}.toml"
     wf = load(Workflow, p)
     wf = replace(wf, source=str(p))
-    if wf.solver.stabilisation_modulus != "initial" and wf.element != "p1-p1s":
-        raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = "
-                          f"{wf.solver.stabilisation_modulus!r} stabilises the "
+    given = load_toml(p).get("solver", {}).get("stabilisation_modulus")
+    if given is not None and wf.element != "p1-p1s":
+        raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")
     wf.subject_dir()
     wf.grasp_spec()

@@ -862,12 +862,15 @@ class GraspFE:
         self.skel = skel
 
     def _lag_stabilisation(self) -> None:
-        """``solver.stabilisation_modulus = "tangent"``: the p1-p1s stabilisation takes each
-        tissue cell's incremental shear modulus at the current (converged) state for the next
-        solve (:meth:`GraspProblem.update_stabilisation`); ``"pressure"``: at least
-        ``stabilisation_pressure_factor`` x the cell's |p|. It enters the pressure equation
-        only, so torques and contact forces of a state do not depend on it directly."""
+        """``solver.stabilisation_modulus = "tangent"`` (default): the p1-p1s stabilisation
+        takes each tissue cell's incremental shear modulus at the current (converged) state
+        for the next solve (:meth:`GraspProblem.update_stabilisation`); ``"pressure"``: at
+        least ``stabilisation_pressure_factor`` x the cell's |p|; ``"initial"``: mu0, never
+        updated. It enters the pressure equation only, so torques and contact forces of a
+        state do not depend on it directly. Other elements have no such term."""
         s = self.wf.solver
+        if self.wf.element != "p1-p1s":
+            return
         if s.stabilisation_modulus == "tangent":
             self.problem.update_stabilisation()
         elif s.stabilisation_modulus == "pressure":
