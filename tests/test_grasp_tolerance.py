@@ -27,7 +27,10 @@ class _Scene:
 
     def __init__(self, problem, solver, closing_atol_N):
         self.problem, self.solver = problem, solver
-        self.wf = SimpleNamespace(solver=SolverSpec(closing_atol_N=closing_atol_N))
+        # "initial": no lagged modulus; these tests are about the loose and tight solves
+        self.wf = SimpleNamespace(solver=SolverSpec(closing_atol_N=closing_atol_N,
+                                                    stabilisation_modulus="initial"),
+                                  element="p1-p1s")
         self.steps, self.log = [], []
 
     def say(self, msg):
