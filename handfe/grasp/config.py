@@ -215,7 +215,8 @@ class SolverSpec:
     # the coarse pinch its pads had about half the contact area and 31-73 % higher peaks,
     # "tangent" -31..+3 % and -6..+11 % (docs/grasp.md, twenty-fifth session); "pressure" =
     # the tangent one but at least stabilisation_pressure_factor x |p| (the cell's mean
-    # pressure). Ignored by the other elements (no such term)
+    # pressure). Other elements have no such term: the default is ignored there, a value
+    # written in the workflow is refused
     stabilisation_modulus: str = field(default="tangent", metadata=choices("initial",
                                                                           "tangent",
                                                                           "pressure"))

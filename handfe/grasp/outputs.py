@@ -284,6 +284,7 @@ def smallest_tissue_cells(problem, model, obstacle, translation, k: int = 5
     from scipy.spatial import cKDTree
 
     comm, msh = problem.comm, model.mesh
+
     def first(J: np.ndarray, centre: np.ndarray) -> np.ndarray:
         # ties (equal J in congruent cells) broken by the centre: the same on any partition
         c = np.round(centre, 6)
