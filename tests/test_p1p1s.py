@@ -27,29 +27,37 @@ def test_stabilised_p1p1_is_locking_free():
     assert abs(cook(8, 0.0) - 8.11) > 10 * abs(d8 - 8.11)
 
 
-@pytest.mark.mpi
-def test_tangent_stabilisation_takes_the_cells_incremental_shear_modulus():
-    """``GraspProblem.update_stabilisation``: at rest the stabilisation keeps mu0; under a
-    uniform 40 % compression of the fat every tissue cell gets the kernel's incremental
-    shear modulus (the same on 1 and 2 ranks), and the change is reported."""
+def _fat_box(lo, hi, n):
+    """A p1-p1s GraspProblem of the brief's fat (nu = 0.499) on a box, all cells SKIN-tagged,
+    no facets; returns the problem and the Ogden set."""
     from types import SimpleNamespace
 
     import numpy as np
-    from dolfinx import fem, mesh
+    from dolfinx import mesh
     from mpi4py import MPI
 
     from handfe.grasp.fe import SKIN, GraspProblem
     from handfe.materials import Ogden
 
-    comm = MPI.COMM_WORLD
-    msh = mesh.create_box(comm, [np.zeros(3), np.array([4.0, 4.0, 2.0])], [2, 2, 1],
+    msh = mesh.create_box(MPI.COMM_WORLD, [np.array(lo), np.array(hi)], n,
                           mesh.CellType.tetrahedron)
     nc = msh.topology.index_map(3).size_local
     ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), np.full(nc, SKIN, np.int32))
     ft = mesh.meshtags(msh, 2, np.zeros(0, np.int32), np.zeros(0, np.int32))
     model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={})
     fat = Ogden.subcutaneous(nu=0.499)
-    prob = GraspProblem(model, fat, fat, element="p1-p1s")
+    return GraspProblem(model, fat, fat, element="p1-p1s"), fat
+
+
+@pytest.mark.mpi
+def test_tangent_stabilisation_takes_the_cells_incremental_shear_modulus():
+    """``GraspProblem.update_stabilisation``: at rest the stabilisation keeps mu0; under a
+    uniform 40 % compression of the fat every tissue cell gets the kernel's incremental
+    shear modulus (the same on 1 and 2 ranks), and the change is reported."""
+    import numpy as np
+    from dolfinx import fem
+
+    prob, fat = _fat_box([0.0, 0.0, 0.0], [4.0, 4.0, 2.0], [2, 2, 1])
     mu0 = sum(fat.mu_MPa)
     assert prob.update_stabilisation() == pytest.approx(0.0, abs=1e-12)
     np.testing.assert_allclose(prob.mu0.x.array, mu0, rtol=1e-12)
@@ -70,24 +78,13 @@ def test_pressure_stabilisation_takes_at_least_the_factor_times_the_cells_pressu
     """``update_stabilisation(c)``: each tissue cell's modulus is max(incremental modulus,
     c |p|) with p the cell's mean pressure (here p = 2e-4 x MPa, tension and compression),
     the same on 1 and 2 ranks; where c |p| is below the incremental modulus it is kept."""
-    from types import SimpleNamespace
-
     import numpy as np
     from dolfinx import fem, mesh
     from mpi4py import MPI
 
-    from handfe.grasp.fe import SKIN, GraspProblem
-    from handfe.materials import Ogden
-
     comm = MPI.COMM_WORLD
-    msh = mesh.create_box(comm, [np.array([-2.0, 0.0, 0.0]), np.array([2.0, 4.0, 2.0])],
-                          [4, 2, 1], mesh.CellType.tetrahedron)
-    nc = msh.topology.index_map(3).size_local
-    ct = mesh.meshtags(msh, 3, np.arange(nc, dtype=np.int32), np.full(nc, SKIN, np.int32))
-    ft = mesh.meshtags(msh, 2, np.zeros(0, np.int32), np.zeros(0, np.int32))
-    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={})
-    fat = Ogden.subcutaneous(nu=0.499)
-    prob = GraspProblem(model, fat, fat, element="p1-p1s")
+    prob, fat = _fat_box([-2.0, 0.0, 0.0], [2.0, 4.0, 2.0], [4, 2, 1])
+    msh = prob.mesh
     mu0 = sum(fat.mu_MPa)
     P = prob.W.sub(1).collapse()[0]
     p = fem.Function(P)
