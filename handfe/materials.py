@@ -648,6 +648,15 @@ def _lateral_free(mat: Material, lam: float, mode: str) -> float:
     return brentq(f, lo, hi, xtol=1e-15, rtol=4 * np.finfo(float).eps, maxiter=500)
 
 
+def check_homogeneous_mode(mode: str, incompressible: bool) -> None:
+    """Refuse an unknown mode, and confined compression with exact incompressibility."""
+    if mode not in HOMOGENEOUS_MODES:
+        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(HOMOGENEOUS_MODES)})")
+    if mode == "confined" and incompressible:
+        raise InputError("confined compression changes the volume (J = stretch): not with "
+                         "exact incompressibility")
+
+
 def homogeneous(mat: Material, mode: str, lam: float, *,
                 incompressible: bool = False) -> tuple[float, tuple[float, float, float]]:
     """Nominal stress P11 (MPa) along the loading direction for a homogeneous deformation with
@@ -658,14 +667,10 @@ def homogeneous(mat: Material, mode: str, lam: float, *,
     faces traction-free, or is fixed by J = 1 when ``incompressible``. ``confined`` = uniaxial
     strain (lambda, 1, 1): the volume changes with lambda, so compressible laws only.
     """
-    if mode not in HOMOGENEOUS_MODES:
-        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(HOMOGENEOUS_MODES)})")
+    check_homogeneous_mode(mode, incompressible)
     if not (math.isfinite(lam) and lam > 0.0):
         raise InputError(f"stretch must be positive and finite, got {lam!r}")
     if mode == "confined":
-        if incompressible:
-            raise InputError("confined compression changes the volume (J = stretch): not with "
-                             "exact incompressibility")
         st = (lam, 1.0, 1.0)
         return float(mat.principal_nominal_stress_np(*st)[0]), st
     if incompressible:

@@ -15,7 +15,7 @@ from dolfinx import mesh as dmesh
 from mpi4py import MPI
 
 from handfe.errors import InputError
-from handfe.materials import HOMOGENEOUS_MODES, Material
+from handfe.materials import Material, check_homogeneous_mode
 from handfe.solver import Discretisation, HyperelasticProblem, LoadStepping, NewtonOptions, solve
 
 
@@ -33,11 +33,7 @@ def cube_stress_curve(material: Material, mode: str, stretches: Sequence[float],
                       comm: MPI.Comm = MPI.COMM_WORLD, n: int = 1,
                       newton: NewtonOptions | None = None) -> np.ndarray:
     """FE nominal stress P11 (MPa) at each stretch (continuation outward from 1)."""
-    if mode not in HOMOGENEOUS_MODES:
-        raise InputError(f"unknown mode '{mode}' (choose from {', '.join(HOMOGENEOUS_MODES)})")
-    if mode == "confined" and incompressible:
-        raise InputError("confined compression changes the volume: not with exact "
-                         "incompressibility")
+    check_homogeneous_mode(mode, incompressible)
     lams = np.asarray(stretches, dtype=float)
     if np.any(~np.isfinite(lams)) or np.any(lams <= 0):
         raise InputError(f"stretches must be positive and finite, got {list(lams)}")
