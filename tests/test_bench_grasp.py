@@ -1,0 +1,83 @@
+"""benchmarks/grasp_time_vs_error.py on finished run folders (``--from-runs``): the error
+arithmetic of the README's grasp table, without a solve."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "grasp_time_vs_error.py"
+DIGITS = ("thumb", "index", "middle", "ring", "little")
+
+
+def _run_folder(d: Path, *, area: dict[str, float], pad_kpa: dict[str, float],
+                pad_force_N: dict[str, float], wall_s: float, status: str = "done") -> Path:
+    """A stand-in ``handfe run`` folder: summary.json, regions.csv, fingertips.csv."""
+    d.mkdir(parents=True)
+    (d / "summary.json").write_text(json.dumps({
+        "status": status, "wall_s": wall_s, "mesh_cells": 1000, "dofs": 900,
+        "newton_iterations": 10, "grip_force_N": 15.0}))
+    cols = ("contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
+            "tangential_force_N")
+    with (d / "regions.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(("region", *cols))
+        for r in (*DIGITS, "palm"):
+            w.writerow((r, area.get(r, 0.0), 10.0, 20.0, pad_force_N.get(r, 0.0), 0.0))
+            if r != "palm":
+                w.writerow((f"{r}_distal", area.get(r, 0.0), pad_kpa.get(r, 0.0), 1.0,
+                            pad_force_N.get(r, 0.0), 0.0))
+    with (d / "fingertips.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(("digit", "mean_pressure_kPa", "peak_pressure_kPa", "contact_area_mm2"))
+        for r in DIGITS:
+            w.writerow((r, pad_kpa.get(r, 0.0), 1.0, area.get(r, 0.0)))
+    return d
+
+
+def _bench(tmp_path: Path, runs: dict[str, Path]) -> subprocess.CompletedProcess:
+    spec = ",".join(f"precision:{lv}={d}" for lv, d in runs.items())
+    return subprocess.run([sys.executable, str(SCRIPT), "--grasps", "precision", "--levels",
+                           ",".join(runs), "--from-runs", spec, "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+
+
+def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_path):
+    ref = _run_folder(tmp_path / "fine", area={"thumb": 100.0, "index": 50.0, "middle": 80.0},
+                      pad_kpa={"thumb": 40.0, "index": 100.0, "middle": 60.0},
+                      pad_force_N={"thumb": 5.0, "index": 5.0, "middle": 0.2}, wall_s=400.0)
+    # thumb area -20 %, index +10 %; index pad pressure +30 %; the middle pad is 3x off but
+    # carries 0.2 N (< 0.5 N) in the reference, so it is not compared
+    coarse = _run_folder(tmp_path / "coarse",
+                         area={"thumb": 80.0, "index": 55.0, "middle": 80.0},
+                         pad_kpa={"thumb": 40.0, "index": 130.0, "middle": 180.0},
+                         pad_force_N={"thumb": 5.0, "index": 5.0, "middle": 0.2}, wall_s=100.0)
+    p = _bench(tmp_path, {"coarse": coarse, "fine": ref})
+    assert p.returncode == 0, p.stderr
+    with (tmp_path / "out" / "grasp_time_vs_error.csv").open() as fh:
+        rows = {r["level"]: r for r in csv.DictReader(fh)}
+    c, f = rows["coarse"], rows["fine"]
+    assert float(c["max_rel_err_region_area"]) == pytest.approx(0.2)
+    assert c["worst_region"] == "thumb"
+    assert float(c["max_rel_err_fingertip_pressure"]) == pytest.approx(0.3)
+    assert c["worst_pad"] == "index"
+    assert float(c["wall_s"]) == 100.0 and c["reference_level"] == "fine"
+    assert float(f["max_rel_err_region_area"]) == 0.0 == float(f["max_rel_err_fingertip_pressure"])
+    assert (tmp_path / "out" / "grasp_time_vs_error.png").stat().st_size > 0
+    with (tmp_path / "out" / "grasp_regions_by_level.csv").open() as fh:
+        assert sum(1 for _ in csv.DictReader(fh)) == 2 * 6  # six regions per level
+
+
+def test_a_partial_run_is_refused_by_name(tmp_path):
+    kw = dict(area={"thumb": 1.0}, pad_kpa={"thumb": 1.0}, pad_force_N={"thumb": 1.0})
+    ref = _run_folder(tmp_path / "fine", wall_s=1.0, **kw)
+    part = _run_folder(tmp_path / "coarse", wall_s=1.0, status="partial", **kw)
+    p = _bench(tmp_path, {"coarse": part, "fine": ref})
+    assert p.returncode != 0
+    assert "coarse" in p.stderr and "'partial'" in p.stderr and "Traceback" not in p.stderr
