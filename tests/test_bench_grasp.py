@@ -53,11 +53,14 @@ def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_
                       pad_kpa={"thumb": 40.0, "index": 100.0, "middle": 60.0},
                       pad_force_N={"thumb": 5.0, "index": 5.0, "middle": 0.2}, wall_s=400.0)
     # thumb area -20 %, index +10 %; index pad pressure +30 %; the middle pad is 3x off but
-    # carries 0.2 N (< 0.5 N) in the reference, so it is not compared
+    # carries 0.2 N (< 0.5 N) in the reference, so it is not compared. The thumb carries
+    # 0.8^1.5 of the reference's force, so scaled by a ~ F^(2/3) its area is exact and the
+    # index is the worst force-scaled region
     coarse = _run_folder(tmp_path / "coarse",
                          area={"thumb": 80.0, "index": 55.0, "middle": 80.0},
                          pad_kpa={"thumb": 40.0, "index": 130.0, "middle": 180.0},
-                         pad_force_N={"thumb": 5.0, "index": 5.0, "middle": 0.2}, wall_s=100.0)
+                         pad_force_N={"thumb": 5.0 * 0.8 ** 1.5, "index": 5.0, "middle": 0.2},
+                         wall_s=100.0)
     p = _bench(tmp_path, {"coarse": coarse, "fine": ref})
     assert p.returncode == 0, p.stderr
     with (tmp_path / "out" / "grasp_time_vs_error.csv").open() as fh:
@@ -67,6 +70,8 @@ def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_
     assert c["worst_region"] == "thumb"
     assert float(c["max_rel_err_fingertip_pressure"]) == pytest.approx(0.3)
     assert c["worst_pad"] == "index"
+    assert float(c["max_rel_err_region_area_force_scaled"]) == pytest.approx(0.1)
+    assert c["worst_region_force_scaled"] == "index"
     assert float(c["wall_s"]) == 100.0 and c["reference_level"] == "fine"
     assert float(f["max_rel_err_region_area"]) == 0.0 == float(f["max_rel_err_fingertip_pressure"])
     assert (tmp_path / "out" / "grasp_time_vs_error.png").stat().st_size > 0
