@@ -80,6 +80,9 @@ def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nresolve_linesearch = "l2"\n')
     with pytest.raises(ConfigError, match="resolve_linesearch"):
         load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[outputs]\nloaded_area_kPa = 0.0\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*loaded_area_kPa"):
+        load_workflow(p)
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nstabilisation_modulus = "secant"\n')
     with pytest.raises(ConfigError, match="stabilisation_modulus"):
         load_workflow(p)

@@ -14,7 +14,7 @@ from mpi4py import MPI
 
 from handfe.anatomy.meshing import SKIN_OUTER_GMSH
 from handfe.contact import HalfSpace
-from handfe.grasp.outputs import facet_data, region_metrics
+from handfe.grasp.outputs import facet_data, loaded_area, region_metrics
 
 N = 4
 INDEX_DISTAL = SKIN_OUTER_GMSH + 10 * 2 + 3
@@ -81,6 +81,10 @@ def test_mean_pressure_ignores_a_dust_of_tiny_nodal_forces():
     r = region_metrics(fd, MPI.COMM_SELF)["index"]
     assert r["mean_pressure_kPa"] == pytest.approx(1000.0, rel=1e-6)
     assert r["contact_area_mm2"] == pytest.approx(2.0)
+    # loaded area: a third of a facet per vertex at >= the threshold; the dust is not loaded
+    assert r["loaded_area_mm2"] == pytest.approx(2.0)
+    assert region_metrics(fd, MPI.COMM_SELF, loaded_area_kPa=1001.0)["index"][
+        "loaded_area_mm2"] == 0.0
     # a pressed facet whose vertices all sit beyond gap_tol (a flat facet on a curved object):
     # its area is its loaded nodes' tributary share, not 0
     fd["area_c"] = np.zeros(nf)
@@ -140,3 +144,9 @@ def test_plot_names_a_folder_without_facets(tmp_path, capsys):
     assert main(["plot", str(tmp_path)]) != 0
     err = capsys.readouterr().err
     assert "pressure_facets.npz" in err and "not found" in err
+
+
+def test_loaded_area_counts_a_third_of_a_facet_per_loaded_vertex():
+    facet_area = np.array([3.0, 6.0, 1.0])
+    p_kPa = np.array([[10.0, 9.99, 0.0], [50.0, 50.0, 50.0], [0.0, 0.0, 0.0]])
+    assert loaded_area(facet_area, p_kPa, 10.0) == pytest.approx([1.0, 6.0, 0.0])

@@ -42,9 +42,11 @@ Loading:
 
 Writes into --out (rank 0):
   regions.csv     per region (thumb, index, middle, ring, little, palm, and each digit's
-                  proximal/middle/distal segment): contact_area_mm2, mean_pressure_kPa,
-                  peak_pressure_kPa, normal_force_N, tangential_force_N
-  fingertips.csv  mean and peak contact pressure and area on the five distal pads
+                  proximal/middle/distal segment): contact_area_mm2 (skin within
+                  solver.gap_tol_mm of the object), loaded_area_mm2 (nodal pressure >=
+                  outputs.loaded_area_kPa, default 10; far less mesh-dependent, README),
+                  mean_pressure_kPa, peak_pressure_kPa, normal_force_N, tangential_force_N
+  fingertips.csv  mean and peak contact pressure, contact and loaded area on the five pads
   summary.json    grip force, equilibrium vs measured angles, torque residuals, max penetration,
                   dofs, load steps, Newton iterations, wall time per stage, what was skipped
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
@@ -69,7 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("workflow", help="workflow TOML (path, or a name in workflows/)")
     p.add_argument("--mesh", choices=("coarse", "reduced", "default", "fine"), default=None,
-                   help="mesh level, overrides the workflow's (coarse: tests/previews only)")
+                   help="mesh level, overrides the workflow's (coarse: tests/previews only; "
+                   "time against error per level: README, benchmarks/grasp_time_vs_error.py)")
     p.add_argument("--loading", choices=("muscles", "angles"), default=None,
                    help="loading mode, overrides the workflow's")
     p.add_argument("--out", required=True, help="output folder (created)")

@@ -227,6 +227,8 @@ class SolverSpec:
 class Outputs:
     fields: bool = True
     png: bool = True
+    # regions.csv loaded_area_mm2: skin with nodal contact pressure >= this (kPa)
+    loaded_area_kPa: float = field(default=10.0, metadata=bounds(0.1, 1000.0))
 
 
 @dataclass(frozen=True)

@@ -460,6 +460,7 @@ def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf
     """Metrics of the current state into ``summary``; regions.csv, fingertips.csv,
     pressure.png and the fields into ``out`` (rank 0 writes; collective)."""
     from handfe.anatomy.meshing import REGIONS
+    from handfe.grasp.outputs import METRICS
     from handfe.io import write_csv
 
     regs, fd = scene.metrics()
@@ -472,12 +473,11 @@ def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf
     summary["contact_force_vector_N"] = total_f.tolist()
     tips = {d: {"mean_pressure_kPa": regs[f"{d}_distal"]["mean_pressure_kPa"],
                 "peak_pressure_kPa": regs[f"{d}_distal"]["peak_pressure_kPa"],
-                "contact_area_mm2": regs[f"{d}_distal"]["contact_area_mm2"]}
+                "contact_area_mm2": regs[f"{d}_distal"]["contact_area_mm2"],
+                "loaded_area_mm2": regs[f"{d}_distal"]["loaded_area_mm2"]}
             for d in REGIONS if d != "palm"}
     if out is not None:
-        rows = [{"region": k, **{m: v[m] for m in (
-            "contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
-            "tangential_force_N")}} for k, v in regs.items()]
+        rows = [{"region": k, **{m: v[m] for m in METRICS}} for k, v in regs.items()]
         if comm.rank == 0:
             write_csv(out / "regions.csv", rows)
             write_csv(out / "fingertips.csv", [{"digit": d, **v} for d, v in tips.items()])
@@ -1855,7 +1855,7 @@ class GraspFE:
         self._out = (u1, p1)
         fd = facet_data(self.model, u1, p1, t1, self.obstacle, self.contact.translation.value,
                         self.wf.solver.gap_tol_mm, node_force=self._contact_node_force())
-        return region_metrics(fd, self.problem.comm), fd
+        return region_metrics(fd, self.problem.comm, self.wf.outputs.loaded_area_kPa), fd
 
     def report(self) -> dict[str, Any]:
         from handfe.grasp.outputs import smallest_tissue_cells

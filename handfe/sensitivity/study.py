@@ -20,8 +20,8 @@ from handfe.paths import REFERENCE_DIR, REPO_ROOT
 MATERIAL_PARAMETERS = ("skin", "subcutaneous")
 LOAD_PARAMETERS_FINGERTIP = ("force",)
 METRICS = {
-    "grasp": ("contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
-              "tangential_force_N"),
+    "grasp": ("contact_area_mm2", "loaded_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa",
+              "normal_force_N", "tangential_force_N"),
     "fingertip": ("contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "deflection_mm"),
 }
 DEFAULT_REGIONS = {"grasp": ("thumb", "index", "middle", "ring", "little", "palm"),

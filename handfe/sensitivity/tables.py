@@ -29,8 +29,9 @@ from handfe.io import write_csv
 from handfe.sensitivity.driver import BASELINE, read_case, study_cases
 from handfe.sensitivity.study import Study
 
-UNITS = {"contact_area_mm2": "mm^2", "mean_pressure_kPa": "kPa", "peak_pressure_kPa": "kPa",
-         "normal_force_N": "N", "tangential_force_N": "N", "deflection_mm": "mm"}
+UNITS = {"contact_area_mm2": "mm^2", "loaded_area_mm2": "mm^2", "mean_pressure_kPa": "kPa",
+         "peak_pressure_kPa": "kPa", "normal_force_N": "N", "tangential_force_N": "N",
+         "deflection_mm": "mm"}
 
 
 def _f(x: float | None) -> str:
