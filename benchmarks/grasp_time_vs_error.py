@@ -5,7 +5,9 @@ shipped ones) and compare the region contact areas (thumb..little, palm) and the
 pressures (pads carrying >= 0.5 N in the reference) with the finest level run; the CSV names
 the worst region and pad. A third error scales each region's area to the reference's region
 force, a ~ F^(2/3) (Hertz), before comparing: the closing stops each digit near its set force,
-not at it, so the raw area error mixes the mesh's error with the force's. Wall time: median
+not at it, so the raw area error mixes the mesh's error with the force's. A fourth compares
+the loaded areas (regions.csv ``loaded_area_mm2``: nodal pressure >= 10 kPa by default; for a
+folder written before that column, computed from its ``pressure_facets.npz``). Wall time: median
 of --repeats runs (the first run of a process also compiles the forms; use --repeats >= 2 or
 a warm cache). Partial-hand meshing ("skip what the scene does not need") is part of every
 run; its saving is in the summary's ``skipped``.
@@ -22,6 +24,9 @@ run marked partial or failed is refused):
     mpirun -n 2 .venv/bin/handfe run workflows/cylindrical.toml --mesh reduced --out R/cyl_r
     .venv/bin/python benchmarks/grasp_time_vs_error.py --grasps cylindrical \
         --levels coarse,reduced --from-runs cylindrical:coarse=R/cyl_c,cylindrical:reduced=R/cyl_r
+
+A point without a folder is run, unless ``--no-run`` (then it is left out, and each grasp is
+compared with its finest level that has a folder).
 
 Writes CSV (stdout and OUT/grasp_time_vs_error.csv), the region tables of every level
 (OUT/grasp_regions_by_level.csv) and OUT/grasp_time_vs_error.png.
@@ -41,6 +46,7 @@ import numpy as np
 from mpi4py import MPI
 
 from handfe.grasp import run_workflow
+from handfe.grasp.outputs import LOADED_AREA_KPA, load_pressure_facets, loaded_area, region_of
 from handfe.io import write_csv
 from handfe.parallel import rprint
 
@@ -75,6 +81,17 @@ def load_run(d: Path) -> tuple[SimpleNamespace, float]:
         raise SystemExit(f"--from-runs {d}: not a finished handfe run folder ({exc})") from None
     if summary.get("status") != "done":
         raise SystemExit(f"--from-runs {d}: run status {summary.get('status')!r}, not 'done'")
+    if "loaded_area_mm2" not in next(iter(regions.values())) and (
+            d / "pressure_facets.npz").exists():
+        # a folder written before regions.csv had the loaded area: the same quantity from the
+        # pressure map's facets (nodal pressures), at the default threshold
+        data, _, _ = load_pressure_facets(d / "pressure_facets.npz")
+        a = np.linalg.norm(np.cross(data["xf"][:, 1] - data["xf"][:, 0],
+                                    data["xf"][:, 2] - data["xf"][:, 0]), axis=1) / 2
+        al = loaded_area(a, data["p_kPa"], LOADED_AREA_KPA)
+        reg = np.array([region_of(int(c))[0] for c in data["codes"]])
+        for r in REGIONS:
+            regions[r]["loaded_area_mm2"] = float(al[reg == r].sum())
     return SimpleNamespace(summary=summary, regions=regions, fingertips=tips), \
         float(summary["wall_s"])
 
@@ -92,6 +109,10 @@ def main() -> None:
     ap.add_argument("--from-runs", default="", metavar="GRASP:LEVEL=DIR,...",
                     help="use finished `handfe run` output folders instead of running these "
                     "(grasp, level) points (wall time = their summary's wall_s)")
+    ap.add_argument("--no-run", action="store_true",
+                    help="run nothing: points without a --from-runs folder are left out (so "
+                    "the grasps may have different level sets; each grasp's last level with "
+                    "a folder is its reference)")
     ap.add_argument("--out", default="results/bench_grasp", help="output folder")
     a = ap.parse_args()
     stored = parse_from_runs(a.from_runs)
@@ -103,6 +124,8 @@ def main() -> None:
         for lv in a.levels.split(","):
             if (g, lv) in stored:
                 runs[lv] = load_run(stored[(g, lv)])
+                continue
+            if a.no_run:
                 continue
             times = []
             res = None
@@ -142,6 +165,15 @@ def main() -> None:
                 if ref.regions[r]["contact_area_mm2"] > 0
                 and res.regions[r]["normal_force_N"] > 0 and ref.regions[r]["normal_force_N"] > 0),
                 default=(0.0, ""))
+            # the loaded area (nodal pressure >= 10 kPa by default): the contact area also
+            # counts skin touching with almost no pressure, a fringe that grows as the mesh
+            # follows the object more closely
+            have_l = all("loaded_area_mm2" in x.regions[REGIONS[0]] for x in (res, ref))
+            err_loaded, worst_l = max(((rel(res.regions[r]["loaded_area_mm2"],
+                                            ref.regions[r]["loaded_area_mm2"]), r)
+                                       for r in REGIONS if have_l
+                                       and ref.regions[r]["loaded_area_mm2"] > 0),
+                                      default=(float("nan") if not have_l else 0.0, ""))
             # pads that carry load in the reference: a pad touching with a few per cent of its
             # digit's force (the spherical thumb's distal pad, 0.2 N of 4.3 N on 1.8 mm2) has
             # a pressure no level resolves, and its relative error says nothing about the grasp
@@ -157,15 +189,18 @@ def main() -> None:
                          "max_rel_err_region_area": err_area,
                          "max_rel_err_fingertip_pressure": err_p,
                          "max_rel_err_region_area_force_scaled": err_scaled,
+                         "max_rel_err_loaded_area": err_loaded,
                          "worst_region": worst_r if err_area > 0 else "",
                          "worst_pad": worst_p if err_p > 0 else "",
                          "worst_region_force_scaled": worst_s if err_scaled > 0 else "",
+                         "worst_region_loaded": worst_l if err_loaded > 0 else "",
                          "reference_level": list(runs)[-1]})
             rprint(",".join(f"{v:.4g}" if isinstance(v, float) else str(v)
                             for v in rows[-1].values()))
             regions.extend({"grasp": g, "level": lv, "region": r, **{
-                m: res.regions[r][m] for m in ("contact_area_mm2", "mean_pressure_kPa",
-                                               "peak_pressure_kPa", "normal_force_N")}}
+                m: res.regions[r].get(m, float("nan")) for m in (
+                    "contact_area_mm2", "loaded_area_mm2", "mean_pressure_kPa",
+                    "peak_pressure_kPa", "normal_force_N")}}
                 for r in REGIONS)
             if comm.rank == 0:
                 out.mkdir(parents=True, exist_ok=True)
@@ -187,6 +222,10 @@ def main() -> None:
                 ax.loglog([r["wall_s"] for r in rr],
                           [max(r["max_rel_err_fingertip_pressure"], 1e-4) for r in rr], "s--",
                           label=f"{g}: fingertip pressure")
+                if all(np.isfinite(r["max_rel_err_loaded_area"]) for r in rr):
+                    ax.loglog([r["wall_s"] for r in rr],
+                              [max(r["max_rel_err_loaded_area"], 1e-4) for r in rr], "^:",
+                              label=f"{g}: loaded area (>= {LOADED_AREA_KPA:g} kPa)")
                 for r in rr:
                     ax.annotate(r["level"], (r["wall_s"], max(r["max_rel_err_region_area"], 1e-4)))
             ref = [r for r in rows if r["grasp"] == g and r["level"] == r["reference_level"]]

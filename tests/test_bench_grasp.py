@@ -86,3 +86,26 @@ def test_a_partial_run_is_refused_by_name(tmp_path):
     p = _bench(tmp_path, {"coarse": part, "fine": ref})
     assert p.returncode != 0
     assert "coarse" in p.stderr and "'partial'" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_loaded_area_of_an_older_folder_comes_from_its_pressure_facets(tmp_path):
+    """Folders written before regions.csv had ``loaded_area_mm2``: the benchmark takes it from
+    pressure_facets.npz (a third of a facet per vertex at >= 10 kPa)."""
+    import numpy as np
+
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # 0.5 mm2
+    thumb_distal = 113  # SKIN_OUTER_GMSH + 10 x region 1 + phalanx 3
+    folders = {}
+    for lv, p in (("coarse", [20.0, 20.0, 9.0]), ("fine", [20.0, 20.0, 20.0])):
+        d = _run_folder(tmp_path / lv, area={"thumb": 1.5}, pad_kpa={"thumb": 20.0},
+                        pad_force_N={"thumb": 1.0}, wall_s=1.0)
+        np.savez(d / "pressure_facets.npz", xf=np.stack([tri] * 3), p_kPa=np.array([p] * 3),
+                 codes=np.full(3, thumb_distal), hand_R=np.eye(3), title="t")
+        folders[lv] = d
+    p = _bench(tmp_path, folders)
+    assert p.returncode == 0, p.stderr
+    with (tmp_path / "out" / "grasp_time_vs_error.csv").open() as fh:
+        rows = {r["level"]: r for r in csv.DictReader(fh)}
+    # coarse: two of three vertices loaded per facet -> 1.0 mm2 against 1.5
+    assert float(rows["coarse"]["max_rel_err_loaded_area"]) == pytest.approx(1 / 3)
+    assert rows["coarse"]["worst_region_loaded"] == "thumb"
