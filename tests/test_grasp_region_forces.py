@@ -64,6 +64,9 @@ def test_nodal_forces_partition_into_regions():
         assert v["mean_pressure_kPa"] == pytest.approx(1e3 * n_top, rel=1e-12)
         # an interior node carries 1 N on h^2 = 1/16 mm2; boundary nodes on less area
         assert v["peak_pressure_kPa"] >= 1e3 * N * N * (1 - 1e-12)
+        # every node is pressed far above 10 kPa: each half of the face is loaded, on any
+        # partition (owned facets only, summed over ranks)
+        assert v["loaded_area_mm2"] == pytest.approx(0.5, rel=1e-12)
 
 
 def test_mean_pressure_ignores_a_dust_of_tiny_nodal_forces():
