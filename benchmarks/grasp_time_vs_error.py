@@ -46,7 +46,13 @@ import numpy as np
 from mpi4py import MPI
 
 from handfe.grasp import run_workflow
-from handfe.grasp.outputs import LOADED_AREA_KPA, load_pressure_facets, loaded_area, region_of
+from handfe.grasp.outputs import (
+    LOADED_AREA_KPA,
+    facet_areas,
+    load_pressure_facets,
+    loaded_area,
+    region_of,
+)
 from handfe.io import write_csv
 from handfe.parallel import rprint
 
@@ -86,9 +92,7 @@ def load_run(d: Path) -> tuple[SimpleNamespace, float]:
         # a folder written before regions.csv had the loaded area: the same quantity from the
         # pressure map's facets (nodal pressures), at the default threshold
         data, _, _ = load_pressure_facets(d / "pressure_facets.npz")
-        a = np.linalg.norm(np.cross(data["xf"][:, 1] - data["xf"][:, 0],
-                                    data["xf"][:, 2] - data["xf"][:, 0]), axis=1) / 2
-        al = loaded_area(a, data["p_kPa"], LOADED_AREA_KPA)
+        al = loaded_area(facet_areas(data["xf"]), data["p_kPa"], LOADED_AREA_KPA)
         reg = np.array([region_of(int(c))[0] for c in data["codes"]])
         for r in REGIONS:
             regions[r]["loaded_area_mm2"] = float(al[reg == r].sum())

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from handfe.config import bounds, choices, load, load_toml
+from handfe.config import bounds, choices, from_dict, load, load_toml
 from handfe.errors import ConfigError
 from handfe.kinematics import DIGITS
 from handfe.paths import GRASPS_DIR, REPO_ROOT, WORKFLOWS_DIR
@@ -281,9 +281,10 @@ def load_workflow(path: str | Path) -> Workflow:
     p = Path(path)
     if not p.suffix and not p.exists():
         p = WORKFLOWS_DIR / f"{path}.toml"
-    wf = load(Workflow, p)
-    wf = replace(wf, source=str(p))
-    given = load_toml(p).get("solver", {}).get("stabilisation_modulus")
+    raw = load_toml(p)
+    wf = replace(from_dict(Workflow, raw, source=str(p)), source=str(p))
+    # the key as written (the default applies to p1-p1s only and is not refused elsewhere)
+    given = raw.get("solver", {}).get("stabilisation_modulus")
     if given is not None and wf.element != "p1-p1s":
         raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")

@@ -36,6 +36,11 @@ METRICS = ("contact_area_mm2", "loaded_area_mm2", "mean_pressure_kPa", "peak_pre
 LOADED_AREA_KPA = 10.0
 
 
+def facet_areas(xf: np.ndarray) -> np.ndarray:
+    """Areas (mm2) of flat triangles with vertices ``xf`` (n, 3, 3)."""
+    return 0.5 * np.linalg.norm(np.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]), axis=1)
+
+
 def loaded_area(facet_area: np.ndarray, p_kPa: np.ndarray, threshold_kPa: float) -> np.ndarray:
     """Each facet's loaded area (mm2): a third of its area (``facet_area``, (n,)) for each of
     its vertices whose pressure (``p_kPa``, (n, 3)) is >= ``threshold_kPa``."""
@@ -99,8 +104,7 @@ def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float, node
     ax = np.eye(3)[:2]
     area_c, _, _, _ = _clip_patch(xf, g - gap_tol_mm, ax) if len(facets) else (
         np.zeros(0), None, None, None)
-    full = 0.5 * np.linalg.norm(np.cross(xf[:, 1] - xf[:, 0], xf[:, 2] - xf[:, 0]), axis=1) \
-        if len(facets) else np.zeros(0)
+    full = facet_areas(xf) if len(facets) else np.zeros(0)
     fd = {"codes": codes, "xf": xf, "g": g, "n": n.reshape(-1, 3, 3), "p": pv, "t": tv,
           "area_c": area_c, "area": full}
     if node_force is not None:
@@ -166,8 +170,7 @@ def region_metrics(fd: dict, comm: MPI.Comm, loaded_area_kPa: float = LOADED_ARE
         # (this replaces the positive-vertex-pressure share above, which counts the dust)
         if len(codes):
             area_c = np.maximum(fd["area_c"], (fd["a_share"] * loaded).sum(axis=1))
-    p_kPa = 1e3 * (fd["p_node"] if nodal else fd["p"]) if len(codes) else np.zeros((0, 3))
-    area_l = loaded_area(fd["area"], p_kPa, loaded_area_kPa) if len(codes) else np.zeros(0)
+    area_l = loaded_area(fd["area"], 1e3 * (fd["p_node"] if nodal else fd["p"]), loaded_area_kPa)
     out = {}
     for k, m in keys.items():
         area = comm.allreduce(float(area_c[m].sum()), op=MPI.SUM)
