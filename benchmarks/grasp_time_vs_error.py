@@ -39,6 +39,7 @@ import csv
 import json
 import statistics
 import time
+import zipfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -87,11 +88,17 @@ def load_run(d: Path) -> tuple[SimpleNamespace, float]:
         raise SystemExit(f"--from-runs {d}: not a finished handfe run folder ({exc})") from None
     if summary.get("status") != "done":
         raise SystemExit(f"--from-runs {d}: run status {summary.get('status')!r}, not 'done'")
-    if "loaded_area_mm2" not in next(iter(regions.values())) and (
-            d / "pressure_facets.npz").exists():
+    if any(r not in regions for r in REGIONS):
+        raise SystemExit(f"--from-runs {d}: regions.csv lacks the rows of "
+                         f"{', '.join(r for r in REGIONS if r not in regions)}")
+    npz = d / "pressure_facets.npz"
+    if "loaded_area_mm2" not in regions[REGIONS[0]] and npz.exists():
         # a folder written before regions.csv had the loaded area: the same quantity from the
         # pressure map's facets (nodal pressures), at the default threshold
-        data, _, _ = load_pressure_facets(d / "pressure_facets.npz")
+        try:
+            data, _, _ = load_pressure_facets(npz)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            raise SystemExit(f"--from-runs {npz}: not readable ({exc})") from None
         al = loaded_area(facet_areas(data["xf"]), data["p_kPa"], LOADED_AREA_KPA)
         reg = np.array([region_of(int(c))[0] for c in data["codes"]])
         for r in REGIONS:

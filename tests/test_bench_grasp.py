@@ -109,3 +109,13 @@ def test_loaded_area_of_an_older_folder_comes_from_its_pressure_facets(tmp_path)
     # coarse: two of three vertices loaded per facet -> 1.0 mm2 against 1.5
     assert float(rows["coarse"]["max_rel_err_loaded_area"]) == pytest.approx(1 / 3)
     assert rows["coarse"]["worst_region_loaded"] == "thumb"
+
+
+def test_an_unreadable_pressure_map_is_named(tmp_path):
+    kw = dict(area={"thumb": 1.0}, pad_kpa={"thumb": 1.0}, pad_force_N={"thumb": 1.0})
+    ref = _run_folder(tmp_path / "fine", wall_s=1.0, **kw)
+    bad = _run_folder(tmp_path / "coarse", wall_s=1.0, **kw)
+    (bad / "pressure_facets.npz").write_bytes(b"not a zip")
+    p = _bench(tmp_path, {"coarse": bad, "fine": ref})
+    assert p.returncode != 0
+    assert "pressure_facets.npz" in p.stderr and "Traceback" not in p.stderr
