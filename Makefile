@@ -10,7 +10,7 @@ export OMP_NUM_THREADS ?= 1
 export OPENBLAS_NUM_THREADS ?= 1
 export MPLBACKEND ?= Agg
 
-.PHONY: setup system demo test test-serial test-mpi lint bench clean
+.PHONY: setup system demo test test-serial test-mpi lint clean
 
 setup: system $(STAMP)
 
