@@ -119,3 +119,35 @@ def test_an_unreadable_pressure_map_is_named(tmp_path):
     p = _bench(tmp_path, {"coarse": bad, "fine": ref})
     assert p.returncode != 0
     assert "pressure_facets.npz" in p.stderr and "Traceback" not in p.stderr
+
+
+def test_mean_pressure_definitions_from_the_pressure_facets(tmp_path):
+    """benchmarks/grasp_mean_pressure_definitions.py: the threshold-based means of a digit
+    (area-weighted nodal pressure, and normal force over the loaded area) and their error."""
+    import numpy as np
+
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # 0.5 mm2
+    folders = []
+    for lv, p in (("coarse", [20.0, 20.0, 9.0]), ("fine", [20.0, 20.0, 20.0])):
+        d = _run_folder(tmp_path / lv, area={"thumb": 1.5}, pad_kpa={"thumb": 20.0},
+                        pad_force_N={"thumb": 1.0}, wall_s=1.0)
+        np.savez(d / "pressure_facets.npz", xf=np.stack([tri] * 3), p_kPa=np.array([p] * 3),
+                 codes=np.full(3, 113), hand_R=np.eye(3), title="t")  # thumb distal
+        folders.append(str(d))
+    script = ROOT / "benchmarks" / "grasp_mean_pressure_definitions.py"
+    p = subprocess.run([sys.executable, str(script), "--runs", "pinch=" + ",".join(folders),
+                        "--thresholds", "10"], capture_output=True, text=True, cwd=ROOT,
+                       timeout=300)
+    assert p.returncode == 0, p.stderr
+    rows = {r["definition"]: r for r in csv.DictReader(p.stdout.splitlines())}
+    assert {r["digit"] for r in rows.values()} == {"thumb"}  # the others carry 0 N
+    # loaded area: 1.0 mm2 (coarse: two of three vertices) and 1.5 mm2 (fine), 1 N on both
+    assert float(rows["mean_over_10kPa"]["level0_kPa"]) == pytest.approx(20.0)
+    assert float(rows["mean_over_10kPa"]["max_rel_err"]) == pytest.approx(0.0)
+    assert float(rows["force_over_10kPa"]["level0_kPa"]) == pytest.approx(1000.0)
+    assert float(rows["force_over_10kPa"]["max_rel_err"]) == pytest.approx(0.5)
+    assert float(rows["regions_csv"]["max_rel_err"]) == pytest.approx(0.0)
+    (tmp_path / "fine" / "pressure_facets.npz").unlink()
+    p = subprocess.run([sys.executable, str(script), "--runs", "pinch=" + ",".join(folders)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert p.returncode != 0 and "fine" in p.stderr and "Traceback" not in p.stderr
