@@ -17,9 +17,8 @@ run; its saving is in the summary's ``skipped``.
 
 A whole-hand run takes 15-25 min at ``reduced`` and over an hour at ``default`` on 2 cores, so
 finished ``handfe run`` folders can stand in for runs (``--from-runs GRASP:LEVEL=DIR,...``; each
-DIR holds the run's
-summary.json, regions.csv and fingertips.csv, its wall time is the summary's ``wall_s``; a
-run marked partial or failed is refused):
+DIR holds the run's summary.json, regions.csv and fingertips.csv, its wall time is the
+summary's ``wall_s``; a run marked partial or failed is refused):
 
     mpirun -n 2 .venv/bin/handfe run workflows/cylindrical.toml --mesh coarse --out R/cyl_c
     mpirun -n 2 .venv/bin/handfe run workflows/cylindrical.toml --mesh reduced --out R/cyl_r
