@@ -48,7 +48,8 @@ Writes into --out (rank 0):
                   mean_pressure_kPa, peak_pressure_kPa, normal_force_N, tangential_force_N
   fingertips.csv  mean and peak contact pressure, contact and loaded area on the five pads
   summary.json    grip force, equilibrium vs measured angles, torque residuals, max penetration,
-                  dofs, load steps, Newton iterations, wall time per stage, what was skipped
+                  dofs, load steps, Newton iterations, wall time per stage, what was skipped,
+                  peak memory (the largest rank's peak resident set, GB)
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)

@@ -188,6 +188,13 @@ def balance_problems(summary: Mapping[str, Any], mode: str, torque_rtol: float) 
     return out
 
 
+def _peak_rss_GB() -> float:
+    """This process's peak resident memory so far (GB, 1e9 bytes; Linux reports KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9
+
+
 def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                  out_dir: Path | str | None = None, comm: MPI.Comm = MPI.COMM_WORLD,
                  materials: Mapping[str, Ogden] | None = None,
@@ -401,6 +408,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         t0 = time.perf_counter()
         regs, tips = _write_outputs(scene, summary, out, wf, grasp, mode, H, comm)
         stages["outputs"] = time.perf_counter() - t0
+        summary["peak_memory_GB_per_rank"] = comm.allreduce(_peak_rss_GB(), op=MPI.MAX)
         problems = balance_problems(summary, mode, wf.solver.torque_rtol)
         if problems:
             # never a silently wrong table: the outputs are written, the status says so
