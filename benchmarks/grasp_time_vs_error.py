@@ -195,6 +195,9 @@ def main() -> None:
                                   >= PAD_MIN_FORCE_N), default=(0.0, ""))
             rows.append({"grasp": g, "level": lv, "cells": res.summary["mesh_cells"],
                          "dofs": res.summary["dofs"], "wall_s": wall,
+                         # (nan for folders written before summary.json had it)
+                         "peak_memory_GB_per_rank": res.summary.get("peak_memory_GB_per_rank",
+                                                                    float("nan")),
                          "newton_iterations": res.summary["newton_iterations"],
                          "grip_force_N": res.summary["grip_force_N"],
                          "max_rel_err_region_area": err_area,

@@ -22,7 +22,7 @@ def _run_folder(d: Path, *, area: dict[str, float], pad_kpa: dict[str, float],
     d.mkdir(parents=True)
     (d / "summary.json").write_text(json.dumps({
         "status": status, "wall_s": wall_s, "mesh_cells": 1000, "dofs": 900,
-        "newton_iterations": 10, "grip_force_N": 15.0}))
+        "newton_iterations": 10, "grip_force_N": 15.0, "peak_memory_GB_per_rank": 1.5}))
     cols = ("contact_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa", "normal_force_N",
             "tangential_force_N")
     with (d / "regions.csv").open("w", newline="") as fh:
@@ -73,6 +73,7 @@ def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_
     assert float(c["max_rel_err_region_area_force_scaled"]) == pytest.approx(0.1)
     assert c["worst_region_force_scaled"] == "index"
     assert float(c["wall_s"]) == 100.0 and c["reference_level"] == "fine"
+    assert float(c["peak_memory_GB_per_rank"]) == 1.5  # from summary.json
     assert float(f["max_rel_err_region_area"]) == 0.0 == float(f["max_rel_err_fingertip_pressure"])
     assert (tmp_path / "out" / "grasp_time_vs_error.png").stat().st_size > 0
     with (tmp_path / "out" / "grasp_regions_by_level.csv").open() as fh:
