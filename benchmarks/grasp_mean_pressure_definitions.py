@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handfe.grasp.outputs import facet_areas, load_pressure_facets, region_of
+from handfe.grasp.outputs import facet_areas, load_pressure_facets, loaded_area, region_of
 
 DIGITS = ("thumb", "index", "middle", "ring", "little")
 MIN_FORCE_N = 0.5
@@ -37,7 +37,7 @@ def digit_means(folder: Path, thresholds: list[float]) -> dict[str, dict[str, fl
         data, _, _ = load_pressure_facets(folder / "pressure_facets.npz")
     except (OSError, ValueError, KeyError) as exc:
         raise SystemExit(f"--runs {folder}: not a finished run folder ({exc})") from None
-    a3 = facet_areas(data["xf"])[:, None] / 3.0  # each vertex's third of the facet (mm2)
+    area = facet_areas(data["xf"])
     p = data["p_kPa"]
     reg = np.array([region_of(c)[0] for c in data["codes"]])
     out: dict[str, dict[str, float]] = {}
@@ -48,9 +48,11 @@ def digit_means(folder: Path, thresholds: list[float]) -> dict[str, dict[str, fl
         fn = float(rows[d]["normal_force_N"])
         vals = {"regions_csv": float(rows[d]["mean_pressure_kPa"]), "normal_force_N": fn}
         for t in thresholds:
-            w = (p[m] >= t) * a3[m]
-            al = float(w.sum())
-            vals[f"mean_over_{t:g}kPa"] = float((p[m] * w).sum()) / al if al > 0 else 0.0
+            # the loaded area as regions.csv defines it; the mean weights each loaded vertex's
+            # pressure by the same third of its facets
+            al = float(loaded_area(area[m], p[m], t).sum())
+            psum = float(((p[m] * (p[m] >= t)).sum(axis=1) * area[m] / 3.0).sum())
+            vals[f"mean_over_{t:g}kPa"] = psum / al if al > 0 else 0.0
             vals[f"force_over_{t:g}kPa"] = 1e3 * fn / al if al > 0 else 0.0
         out[d] = vals
     return out
