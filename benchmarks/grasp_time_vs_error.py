@@ -7,10 +7,11 @@ the worst region and pad. A third error scales each region's area to the referen
 force, a ~ F^(2/3) (Hertz), before comparing: the closing stops each digit near its set force,
 not at it, so the raw area error mixes the mesh's error with the force's. A fourth compares
 the loaded areas (regions.csv ``loaded_area_mm2``: nodal pressure >= 10 kPa by default; for a
-folder written before that column, computed from its ``pressure_facets.npz``). Wall time: median
-of --repeats runs (the first run of a process also compiles the forms; use --repeats >= 2 or
-a warm cache). Partial-hand meshing ("skip what the scene does not need") is part of every
-run; its saving is in the summary's ``skipped``.
+folder written before that column, computed from its ``pressure_facets.npz``), a fifth the
+pads' peak pressures (fingertips.csv ``peak_pressure_kPa``, same pads as the mean). Wall
+time: median of --repeats runs (the first run of a process also compiles the forms; use
+--repeats >= 2 or a warm cache). Partial-hand meshing ("skip what the scene does not need")
+is part of every run; its saving is in the summary's ``skipped``.
 
     .venv/bin/python benchmarks/grasp_time_vs_error.py --grasps precision --levels coarse,reduced
     mpirun -n 2 .venv/bin/python benchmarks/grasp_time_vs_error.py --out results/bench_grasp
@@ -108,6 +109,20 @@ def load_run(d: Path) -> tuple[SimpleNamespace, float]:
         float(summary["wall_s"])
 
 
+def rel_err(a: float, b: float) -> float:
+    """|a - b| / |b|; 0 when both are 0, inf when only ``b`` is."""
+    return abs(a - b) / abs(b) if abs(b) > 0 else (0.0 if a == 0 else np.inf)
+
+
+def pad_error(res: SimpleNamespace, ref: SimpleNamespace, metric: str) -> tuple[float, str]:
+    """Largest relative error of fingertips.csv ``metric`` over the pads that carry >=
+    PAD_MIN_FORCE_N in ``ref``, and that pad ((0, "") when none does)."""
+    return max(((rel_err(res.fingertips[d][metric], ref.fingertips[d][metric]), d)
+                for d in DIGITS if ref.fingertips[d][metric] > 0
+                and ref.regions[f"{d}_distal"]["normal_force_N"] >= PAD_MIN_FORCE_N),
+               default=(0.0, ""))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -161,9 +176,7 @@ def main() -> None:
             continue
         ref = runs[list(runs)[-1]][0]
         for lv, (res, wall) in runs.items():
-            def rel(a_, b_):
-                return abs(a_ - b_) / abs(b_) if abs(b_) > 0 else (0.0 if a_ == 0 else np.inf)
-            err_area, worst_r = max(((rel(res.regions[r]["contact_area_mm2"],
+            err_area, worst_r = max(((rel_err(res.regions[r]["contact_area_mm2"],
                                           ref.regions[r]["contact_area_mm2"]), r) for r in REGIONS
                                      if ref.regions[r]["contact_area_mm2"] > 0),
                                     default=(0.0, ""))
@@ -171,7 +184,7 @@ def main() -> None:
             # a ~ F^(2/3): the closing stops each digit near, not at, its set force (the
             # sphere's reduced index overshot to 7.2 N of 5), and this separates the patch's
             # discretisation error from that force-control error
-            err_scaled, worst_s = max(((rel(res.regions[r]["contact_area_mm2"] * (
+            err_scaled, worst_s = max(((rel_err(res.regions[r]["contact_area_mm2"] * (
                 ref.regions[r]["normal_force_N"] / res.regions[r]["normal_force_N"]) ** (2 / 3),
                 ref.regions[r]["contact_area_mm2"]), r) for r in REGIONS
                 if ref.regions[r]["contact_area_mm2"] > 0
@@ -181,7 +194,7 @@ def main() -> None:
             # counts skin touching with almost no pressure, a fringe that grows as the mesh
             # follows the object more closely
             have_l = all("loaded_area_mm2" in x.regions[REGIONS[0]] for x in (res, ref))
-            err_loaded, worst_l = max(((rel(res.regions[r]["loaded_area_mm2"],
+            err_loaded, worst_l = max(((rel_err(res.regions[r]["loaded_area_mm2"],
                                             ref.regions[r]["loaded_area_mm2"]), r)
                                        for r in REGIONS if have_l
                                        and ref.regions[r]["loaded_area_mm2"] > 0),
@@ -189,11 +202,11 @@ def main() -> None:
             # pads that carry load in the reference: a pad touching with a few per cent of its
             # digit's force (the spherical thumb's distal pad, 0.2 N of 4.3 N on 1.8 mm2) has
             # a pressure no level resolves, and its relative error says nothing about the grasp
-            err_p, worst_p = max(((rel(res.fingertips[d]["mean_pressure_kPa"],
-                                       ref.fingertips[d]["mean_pressure_kPa"]), d) for d in DIGITS
-                                  if ref.fingertips[d]["mean_pressure_kPa"] > 0
-                                  and ref.regions[f"{d}_distal"]["normal_force_N"]
-                                  >= PAD_MIN_FORCE_N), default=(0.0, ""))
+            err_p, worst_p = pad_error(res, ref, "mean_pressure_kPa")
+            # the pad's peak (fingertips.csv): what a user reads as "the" fingertip pressure;
+            # it moves with the mesh more than the mean (the pinch's index 373 / 523 kPa at
+            # default / fine)
+            err_pk, worst_pk = pad_error(res, ref, "peak_pressure_kPa")
             rows.append({"grasp": g, "level": lv, "cells": res.summary["mesh_cells"],
                          "dofs": res.summary["dofs"], "wall_s": wall,
                          # (nan for folders written before summary.json had it)
@@ -205,10 +218,12 @@ def main() -> None:
                          "max_rel_err_fingertip_pressure": err_p,
                          "max_rel_err_region_area_force_scaled": err_scaled,
                          "max_rel_err_loaded_area": err_loaded,
+                         "max_rel_err_fingertip_peak_pressure": err_pk,
                          "worst_region": worst_r if err_area > 0 else "",
                          "worst_pad": worst_p if err_p > 0 else "",
                          "worst_region_force_scaled": worst_s if err_scaled > 0 else "",
                          "worst_region_loaded": worst_l if err_loaded > 0 else "",
+                         "worst_pad_peak": worst_pk if err_pk > 0 else "",
                          "reference_level": list(runs)[-1]})
             rprint(",".join(f"{v:.4g}" if isinstance(v, float) else str(v)
                             for v in rows[-1].values()))

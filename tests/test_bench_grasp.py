@@ -17,7 +17,8 @@ DIGITS = ("thumb", "index", "middle", "ring", "little")
 
 
 def _run_folder(d: Path, *, area: dict[str, float], pad_kpa: dict[str, float],
-                pad_force_N: dict[str, float], wall_s: float, status: str = "done") -> Path:
+                pad_force_N: dict[str, float], wall_s: float, status: str = "done",
+                pad_peak_kpa: dict[str, float] | None = None) -> Path:
     """A stand-in ``handfe run`` folder: summary.json, regions.csv, fingertips.csv."""
     d.mkdir(parents=True)
     (d / "summary.json").write_text(json.dumps({
@@ -37,7 +38,8 @@ def _run_folder(d: Path, *, area: dict[str, float], pad_kpa: dict[str, float],
         w = csv.writer(fh)
         w.writerow(("digit", "mean_pressure_kPa", "peak_pressure_kPa", "contact_area_mm2"))
         for r in DIGITS:
-            w.writerow((r, pad_kpa.get(r, 0.0), 1.0, area.get(r, 0.0)))
+            w.writerow((r, pad_kpa.get(r, 0.0), (pad_peak_kpa or {}).get(r, 1.0),
+                        area.get(r, 0.0)))
     return d
 
 
@@ -51,7 +53,8 @@ def _bench(tmp_path: Path, runs: dict[str, Path]) -> subprocess.CompletedProcess
 def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_path):
     ref = _run_folder(tmp_path / "fine", area={"thumb": 100.0, "index": 50.0, "middle": 80.0},
                       pad_kpa={"thumb": 40.0, "index": 100.0, "middle": 60.0},
-                      pad_force_N={"thumb": 5.0, "index": 5.0, "middle": 0.2}, wall_s=400.0)
+                      pad_force_N={"thumb": 5.0, "index": 5.0, "middle": 0.2}, wall_s=400.0,
+                      pad_peak_kpa={"thumb": 100.0, "index": 500.0, "middle": 100.0})
     # thumb area -20 %, index +10 %; index pad pressure +30 %; the middle pad is 3x off but
     # carries 0.2 N (< 0.5 N) in the reference, so it is not compared. The thumb carries
     # 0.8^1.5 of the reference's force, so scaled by a ~ F^(2/3) its area is exact and the
@@ -60,7 +63,8 @@ def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_
                          area={"thumb": 80.0, "index": 55.0, "middle": 80.0},
                          pad_kpa={"thumb": 40.0, "index": 130.0, "middle": 180.0},
                          pad_force_N={"thumb": 5.0 * 0.8 ** 1.5, "index": 5.0, "middle": 0.2},
-                         wall_s=100.0)
+                         wall_s=100.0,
+                         pad_peak_kpa={"thumb": 140.0, "index": 400.0, "middle": 900.0})
     p = _bench(tmp_path, {"coarse": coarse, "fine": ref})
     assert p.returncode == 0, p.stderr
     with (tmp_path / "out" / "grasp_time_vs_error.csv").open() as fh:
@@ -70,6 +74,9 @@ def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_
     assert c["worst_region"] == "thumb"
     assert float(c["max_rel_err_fingertip_pressure"]) == pytest.approx(0.3)
     assert c["worst_pad"] == "index"
+    # peaks: thumb +40 %, index -20 %; the unloaded middle pad's 9x is not compared
+    assert float(c["max_rel_err_fingertip_peak_pressure"]) == pytest.approx(0.4)
+    assert c["worst_pad_peak"] == "thumb"
     assert float(c["max_rel_err_region_area_force_scaled"]) == pytest.approx(0.1)
     assert c["worst_region_force_scaled"] == "index"
     assert float(c["wall_s"]) == 100.0 and c["reference_level"] == "fine"
