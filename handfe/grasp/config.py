@@ -194,7 +194,9 @@ class SolverSpec:
     step_uzawa: bool = False
     # angles mode: closing_secant sizes each digit's next step from its last two (angle, force)
     # pairs (log-force secant aimed just under digit_force_N; at most closing_step_deg); a
-    # digit stops once its force is >= (1 - digit_force_rtol) x digit_force_N
+    # digit stops once its force is >= (1 - digit_force_rtol) x digit_force_N. The band is the
+    # closing's, not the result's: the other digits' closing and the final Uzawa phase move a
+    # stopped digit's force (coarse pinch at rtol 0.02: -5 to +27 % off; docs/grasp.md)
     closing_secant: bool = False
     digit_force_rtol: float = field(default=0.0, metadata=bounds(0.0, 0.9))
     # contact facet quadrature: "vertex" collocates the contact force at the nodes, where the
