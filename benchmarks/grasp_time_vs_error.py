@@ -114,6 +114,13 @@ def rel_err(a: float, b: float) -> float:
     return abs(a - b) / abs(b) if abs(b) > 0 else (0.0 if a == 0 else np.inf)
 
 
+def region_error(res: SimpleNamespace, ref: SimpleNamespace, metric: str) -> tuple[float, str]:
+    """Largest relative error of regions.csv ``metric`` over the regions (thumb..little, palm)
+    where ``ref`` has it > 0, and that region ((0, "") when none has)."""
+    return max(((rel_err(res.regions[r][metric], ref.regions[r][metric]), r) for r in REGIONS
+                if ref.regions[r][metric] > 0), default=(0.0, ""))
+
+
 def pad_error(res: SimpleNamespace, ref: SimpleNamespace, metric: str) -> tuple[float, str]:
     """Largest relative error of fingertips.csv ``metric`` over the pads that carry >=
     PAD_MIN_FORCE_N in ``ref``, and that pad ((0, "") when none does)."""
@@ -176,10 +183,7 @@ def main() -> None:
             continue
         ref = runs[list(runs)[-1]][0]
         for lv, (res, wall) in runs.items():
-            err_area, worst_r = max(((rel_err(res.regions[r]["contact_area_mm2"],
-                                          ref.regions[r]["contact_area_mm2"]), r) for r in REGIONS
-                                     if ref.regions[r]["contact_area_mm2"] > 0),
-                                    default=(0.0, ""))
+            err_area, worst_r = region_error(res, ref, "contact_area_mm2")
             # the same, each area scaled to the reference's region force by Hertz's
             # a ~ F^(2/3): the closing stops each digit near, not at, its set force (the
             # sphere's reduced index overshot to 7.2 N of 5), and this separates the patch's
@@ -194,11 +198,8 @@ def main() -> None:
             # counts skin touching with almost no pressure, a fringe that grows as the mesh
             # follows the object more closely
             have_l = all("loaded_area_mm2" in x.regions[REGIONS[0]] for x in (res, ref))
-            err_loaded, worst_l = max(((rel_err(res.regions[r]["loaded_area_mm2"],
-                                            ref.regions[r]["loaded_area_mm2"]), r)
-                                       for r in REGIONS if have_l
-                                       and ref.regions[r]["loaded_area_mm2"] > 0),
-                                      default=(float("nan") if not have_l else 0.0, ""))
+            err_loaded, worst_l = (region_error(res, ref, "loaded_area_mm2") if have_l
+                                   else (float("nan"), ""))
             # pads that carry load in the reference: a pad touching with a few per cent of its
             # digit's force (the spherical thumb's distal pad, 0.2 N of 4.3 N on 1.8 mm2) has
             # a pressure no level resolves, and its relative error says nothing about the grasp
