@@ -77,6 +77,11 @@ def test_errors_are_relative_to_the_last_level_and_skip_lightly_loaded_pads(tmp_
     # peaks: thumb +40 %, index -20 %; the unloaded middle pad's 9x is not compared
     assert float(c["max_rel_err_fingertip_peak_pressure"]) == pytest.approx(0.4)
     assert c["worst_pad_peak"] == "thumb"
+    # the forces compared at: the thumb carries 0.8^1.5 of the reference's; the middle's
+    # 0.2 N is below the 0.5 N floor
+    assert float(c["max_rel_diff_region_force"]) == pytest.approx(1.0 - 0.8 ** 1.5)
+    assert c["worst_region_force"] == "thumb"
+    assert float(f["max_rel_diff_region_force"]) == 0.0 and f["worst_region_force"] == ""
     assert float(c["max_rel_err_region_area_force_scaled"]) == pytest.approx(0.1)
     assert c["worst_region_force_scaled"] == "index"
     assert float(c["wall_s"]) == 100.0 and c["reference_level"] == "fine"
