@@ -107,9 +107,11 @@ def test_precision_light_grip_end_to_end_two_ranks(light_pinch):
     """CI-sized pinch: the whole workflow (posture, placement, pre-closing, partial meshing,
     kinematic closing, Uzawa phase, outputs) with each digit closing to 1 N instead of 5 N (the
     5 N run is the opt-in test above). Checks object equilibrium, the 0.01 mm penetration
-    target, that ring and little (not meshed) carry nothing, and the files. 224 s on 2 ranks
-    (1 Dec 2026: placement 25 s, meshing 53 s with two HXT retries, solve 142 s, 8 closing steps,
-    191 Newton iterations, 17 Uzawa updates, penetration 0.0024 mm, digits 1.1-1.3 N)."""
+    target, that ring and little (not meshed) carry nothing, and the files. With the shipped
+    matched-force closing (5 % band, 0.02 mm; 5 Dec 2026, mesh from the cache): 77 s on 2 ranks,
+    placement 12 s, solve 62 s, 10 load steps, 163 Newton iterations, 20 Uzawa updates,
+    penetration 0.0028 mm, digits 0.97-1.06 N (the 20 % band, 1 Dec: solve 142 s, 191
+    iterations, digits 1.1-1.3 N). This test file took 224 s under ``make test-mpi``."""
     wf, res, out = light_pinch
     COMM.barrier()
     s = res.summary
