@@ -29,11 +29,12 @@ def ogden_dev_stress_tangent(F: np.ndarray, mu: np.ndarray, alpha: np.ndarray, *
     with np.errstate(invalid="ignore", divide="ignore"):
         # an inverted cell (J <= 0, a Newton trial step) gives NaN, as the UFL kernel did:
         # the line search or the step cut handles it
-        return _stress_tangent(F, mu, alpha, tangent)
+        sp = _spectral(F, mu, alpha)
+        return sp["P"], (_tangent(F, sp) if tangent else None)
 
 
-def _stress_tangent(F, mu, alpha, tangent):
-    n = F.shape[0]
+def _spectral(F, mu, alpha) -> dict[str, np.ndarray]:
+    """The stress P and the spectral quantities :func:`_tangent` needs."""
     C = np.einsum("nki,nkj->nij", F, F)
     c, N = np.linalg.eigh(C)  # c ascending (n, 3); N[:, :, a] eigenvector a
     J = np.linalg.det(F)
@@ -46,8 +47,12 @@ def _stress_tangent(F, mu, alpha, tangent):
     S_a = beta / c
     S = np.einsum("na,nia,nja->nij", S_a, N, N)
     P = np.einsum("niI,nIJ->niJ", F, S)
-    if not tangent:
-        return P, None
+    return {"P": P, "c": c, "N": N, "h": h, "beta": beta, "S_a": S_a, "S": S}
+
+
+def _tangent(F, sp: dict[str, np.ndarray]) -> np.ndarray:
+    n = F.shape[0]
+    c, N, h, beta, S_a, S = (sp[k] for k in ("c", "N", "h", "beta", "S_a", "S"))
     # g_ab = lambda_b d(beta_a)/d(lambda_b)
     eye = np.eye(3)
     g = h[:, :, None] * eye - (h[:, :, None] + h[:, None, :]) / 3.0 \
@@ -75,7 +80,7 @@ def _stress_tangent(F, mu, alpha, tangent):
     A = A9.reshape(n, 3, 3, 3, 3)
     A += eye[None, :, None, :, None] * S[:, None, :, None, :]
     assert A.shape == (n, 3, 3, 3, 3)
-    return P, A
+    return A
 
 
 class OgdenP1Kernel:
@@ -105,6 +110,8 @@ class OgdenP1Kernel:
         self._mu = mu.x.array.reshape(-1, m)[blk]
         self._alpha = alpha.x.array.reshape(-1, m)[blk]
         self._mu_fn, self._alpha_fn, self._blk, self._m = mu, alpha, blk, m
+        # [F, spectral data, tangent written] of the last update (see :meth:`update`)
+        self._last: list | None = None
         Pm = ufl.as_matrix([[self.P[3 * i + j] for j in range(3)] for i in range(3)])
         Am = ufl.as_matrix([[self.A[9 * r + s] for s in range(9)] for r in range(9)])
         gv = ufl.grad(v)
@@ -116,6 +123,7 @@ class OgdenP1Kernel:
 
     def refresh_parameters(self) -> None:
         """Re-read the Ogden parameter Functions (after a material change)."""
+        self._last = None
         self._mu = self._mu_fn.x.array.reshape(-1, self._m)[self._blk]
         self._alpha = self._alpha_fn.x.array.reshape(-1, self._m)[self._blk]
 
@@ -141,9 +149,18 @@ class OgdenP1Kernel:
 
     def update(self, tangent: bool = True) -> None:
         """Stress (and the tangent if ``tangent``) from the current displacement, on ghost
-        cells too (no scatter needed)."""
+        cells too (no scatter needed). Newton asks for the tangent where it has just evaluated
+        the residual: the same F reuses that call's eigendecomposition and stress (the
+        residual's share was half the tangent call's 50 ms per rank on the coarse pinch)."""
         F = self._deformation_gradient()
-        P, A = ogden_dev_stress_tangent(F, self._mu, self._alpha, tangent=tangent)
-        self.P.x.array.reshape(-1, 9)[self._pdof] = P.reshape(-1, 9)
-        if A is not None:
+        last = self._last
+        if last is None or not np.array_equal(F, last[0]):
+            with np.errstate(invalid="ignore", divide="ignore"):  # as ogden_dev_stress_tangent
+                sp = _spectral(F, self._mu, self._alpha)
+            self.P.x.array.reshape(-1, 9)[self._pdof] = sp["P"].reshape(-1, 9)
+            last = self._last = [F, sp, False]
+        if tangent and not last[2]:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                A = _tangent(F, last[1])
             self.A.x.array.reshape(-1, 81)[self._adof] = A.reshape(-1, 81)
+            last[2] = True

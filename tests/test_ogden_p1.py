@@ -153,3 +153,53 @@ def test_kernel_shear_modulus_is_mu0_at_rest_and_mu_lambda_alpha_when_stretches_
     got = modulus(stretches)
     np.testing.assert_allclose(got, expect, rtol=1e-9)
     assert 15.0 * mu0 < got.min() < 30.0 * mu0
+
+
+def test_kernel_reuses_the_residual_call_only_at_the_same_state():
+    """Newton asks for the tangent where it has just evaluated the residual: the kernel reuses
+    that call's stress and eigendecomposition, and the fields it writes are those of a fresh
+    computation - also after the state or the parameters change."""
+    import ufl
+    from dolfinx import fem, mesh
+
+    msh = mesh.create_unit_cube(MPI.COMM_SELF, 2, 1, 1)
+    V = fem.VectorFunctionSpace(msh, ("CG", 1))
+    u = fem.Function(V)
+    n = len(SKIN.mu_MPa)
+    D = fem.VectorFunctionSpace(msh, ("DG", 0), dim=n)
+    mu, alpha = fem.Function(D), fem.Function(D)
+    mu.x.array[:] = np.tile(SKIN.mu_MPa, mu.x.array.size // n)
+    alpha.x.array[:] = np.tile(SKIN.alpha, alpha.x.array.size // n)
+    dx1 = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": 1})
+    k = OgdenP1Kernel(msh, u, mu, alpha, ufl.TestFunction(V), ufl.TrialFunction(V), dx1)
+    ncell = len(k.cells)
+
+    def fresh():
+        F = k._deformation_gradient()
+        m = mu.x.array.reshape(-1, n)[k._blk]
+        a = alpha.x.array.reshape(-1, n)[k._blk]
+        P, A = ogden_dev_stress_tangent(F, m, a)
+        return P.reshape(ncell, 9), A.reshape(ncell, 81)
+
+    def fields():
+        return (k.P.x.array.reshape(-1, 9)[k._pdof].copy(),
+                k.A.x.array.reshape(-1, 81)[k._adof].copy())
+
+    for shear in (0.2, -0.3):
+        u.interpolate(lambda x, s=shear: np.vstack([s * x[1], 0.1 * x[0] * x[2], -s * x[2]]))
+        k.update(tangent=False)
+        P0, _ = fresh()
+        np.testing.assert_array_equal(fields()[0], P0)
+        k.update(tangent=True)  # same state: the tangent from the cached decomposition
+        P, A = fields()
+        P1, A1 = fresh()
+        np.testing.assert_array_equal(P, P1)
+        np.testing.assert_allclose(A, A1, rtol=0, atol=1e-15)
+    mu.x.array[:] *= 2.0
+    k.refresh_parameters()
+    k.update(tangent=True)
+    P, A = fields()
+    P2, A2 = fresh()
+    np.testing.assert_allclose(P, P2, rtol=1e-14, atol=0)
+    np.testing.assert_allclose(A, A2, rtol=1e-14, atol=1e-15)
+    assert np.abs(P2).max() > 0.0
