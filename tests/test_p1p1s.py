@@ -213,3 +213,30 @@ def test_smallest_tissue_cells_says_where_the_tissue_lost_volume():
     assert [c["centre_mm"] for c in got] == [[3.5, 3.75, 0.25], [3.5, 3.75, 1.25],
                                             [3.75, 3.5, 0.25], [3.75, 3.5, 1.25],
                                             [3.5, 2.75, 0.25]]
+
+
+@pytest.mark.mpi
+def test_untagged_cells_are_refused():
+    """Every tissue integral of the p1-p1s problem (the stabilisation too, since it runs over
+    the skin, subcutaneous and nail tags) needs each cell tagged: a mesh with untagged cells is
+    refused on every rank with an InputError that counts them, not solved without material."""
+    from types import SimpleNamespace
+
+    import numpy as np
+    from dolfinx import mesh
+    from mpi4py import MPI
+
+    from handfe.errors import InputError
+    from handfe.grasp.fe import SKIN, GraspProblem
+    from handfe.materials import Ogden
+
+    comm = MPI.COMM_WORLD
+    msh = mesh.create_box(comm, [np.zeros(3), np.ones(3)], [2, 2, 2], mesh.CellType.tetrahedron)
+    nc = msh.topology.index_map(3).size_local
+    keep = np.arange(nc - 1 if comm.rank == 0 else nc, dtype=np.int32)  # rank 0 drops one
+    ct = mesh.meshtags(msh, 3, keep, np.full(len(keep), SKIN, np.int32))
+    ft = mesh.meshtags(msh, 2, np.zeros(0, np.int32), np.zeros(0, np.int32))
+    model = SimpleNamespace(mesh=msh, cell_tags=ct, facet_tags=ft, tags={})
+    fat = Ogden.subcutaneous(nu=0.499)
+    with pytest.raises(InputError, match="1 cell"):
+        GraspProblem(model, fat, fat, element="p1-p1s")

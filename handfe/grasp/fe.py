@@ -20,6 +20,7 @@ from dolfinx.fem import petsc as fem_petsc
 from mpi4py import MPI
 from petsc4py import PETSc
 
+from handfe.errors import InputError
 from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
 from handfe.solver import Discretisation, lift_unless_satisfied, mumps_lu_ksp
 from handfe.step_guard import InversionGuard
@@ -112,12 +113,14 @@ class GraspProblem:
             # Over the three tags, not dx: FFCx compiles an untagged dx as a kernel of its own
             # that dolfinx runs over every cell, a second pass (and 256 more matrix insertions)
             # per cell that cost as much as all the tagged kernels together (coarse pinch:
-            # tissue Jacobian 131 -> 65 ms per rank). Every cell carries one of the tags.
+            # tissue Jacobian 131 -> 67 ms per rank). Every cell must carry one of the tags.
             n_owned = mesh.topology.index_map(mesh.topology.dim).size_local
             tagged = sum(int(np.count_nonzero(c < n_owned)) for c in self._cells.values())
-            if tagged != n_owned:
-                raise ValueError(f"{n_owned - tagged} cell(s) without a skin, subcutaneous or "
-                                 "nail tag: the stabilisation would miss them")
+            untagged = self.comm.allreduce(n_owned - tagged, op=MPI.SUM)
+            if untagged:
+                raise InputError(f"the hand mesh has {untagged} cell(s) without a skin, "
+                                 "subcutaneous or nail tag (1, 2, 3): no material is defined "
+                                 "on them")
             stab = -0.5 * STAB_BETA * h * h / self.mu0 * ufl.inner(gp, gp) \
                 * dx1((SKIN, SUBCUT, NAIL))
             self.energy += stab
