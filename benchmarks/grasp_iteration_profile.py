@@ -4,6 +4,8 @@ with ``--ufl``, the UFL form it replaced (its first compilation takes minutes).
 
     .venv/bin/python benchmarks/grasp_iteration_profile.py precision coarse
     mpirun -n 2 .venv/bin/python benchmarks/grasp_iteration_profile.py cylindrical coarse --ufl
+    mpirun -n 2 .venv/bin/python benchmarks/grasp_iteration_profile.py precision default \
+        --mumps icntl_35=1,cntl_7=1e-8
 
 The scene is built by ``run_workflow`` up to the FE problem (pre-closed posture, no contact
 force yet: the matrix size and pattern are what matter); the loading stage is replaced by
@@ -19,6 +21,7 @@ import argparse
 import time
 
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from handfe.grasp import run_workflow, scene
 from handfe.parallel import rprint
@@ -50,10 +53,23 @@ def _measure(self) -> None:
             A.assemble()
         return go
 
-    def factor_solve():
+    def lu():
+        # Newton's MUMPS options (handfe.grasp.fe: ICNTL(14) = 200) and any of --mumps
         ksp = mumps_lu_ksp(comm, A)
+        opts = PETSc.Options()
+        for k, v in {"icntl_14": "200", **_measure.mumps}.items():
+            opts[f"profile_mat_mumps_{k}"] = v
+        ksp.setOptionsPrefix("profile_")
+        ksp.setFromOptions()
+        return ksp
+
+    rhs = b.duplicate()  # the residual of the pre-closed state is zero: a random right side
+    rhs.setRandom()
+
+    def factor_solve():
+        ksp = lu()
         y = x.duplicate()
-        ksp.solve(b, y)
+        ksp.solve(rhs, y)
         ksp.destroy()
         y.destroy()
 
@@ -85,18 +101,23 @@ def _measure(self) -> None:
     S._jacobian(None, x, A, A)
     r["mumps_factor_solve_s"] = tm(factor_solve, 2)
     # as in Newton: the pattern's analysis is kept, a new Jacobian is factorised numerically
-    ksp = mumps_lu_ksp(comm, A)
+    ksp = lu()
     y = x.duplicate()
-    ksp.solve(b, y)
+    ksp.solve(rhs, y)
     total = 0.0
     for _ in range(2):
         S._jacobian(None, x, A, A)  # a new matrix state: the next solve refactorises
         comm.barrier()
         t = time.perf_counter()
-        ksp.solve(b, y)
+        ksp.solve(rhs, y)
         comm.barrier()
         total += time.perf_counter() - t
     r["mumps_refactor_solve_s"] = total / 2
+    res = b.duplicate()
+    A.mult(y, res)
+    res.axpy(-1.0, rhs)
+    r["mumps_relres"] = res.norm() / rhs.norm()  # of the last solve (BLR is approximate)
+    res.destroy()
     ksp.destroy()
     y.destroy()
     _measure.result = r
@@ -113,7 +134,14 @@ def main() -> None:
     ap.add_argument("workflow", help="workflow name (workflows/NAME.toml) or path")
     ap.add_argument("mesh", help="mesh level: coarse, reduced, default, fine")
     ap.add_argument("--ufl", action="store_true", help="the UFL Ogden form instead of NumPy")
+    ap.add_argument("--mumps", default="", metavar="K=V,...",
+                    help="MUMPS options for the factorisation columns, without 'mat_mumps_', "
+                         "e.g. icntl_35=1,cntl_7=1e-8 (block low-rank) or icntl_7=5 (METIS)")
     a = ap.parse_args()
+    try:
+        _measure.mumps = dict(kv.split("=", 1) for kv in a.mumps.split(",") if kv)
+    except ValueError:
+        ap.error(f"--mumps {a.mumps!r}: expected KEY=VALUE pairs separated by commas")
     comm = MPI.COMM_WORLD
     if a.ufl:
         from handfe.grasp import fe
@@ -132,9 +160,10 @@ def main() -> None:
     except _Done:
         pass
     r = _measure.result
-    rprint("workflow,mesh,kernel,ranks," + ",".join(r))
+    rprint("workflow,mesh,kernel,ranks," + ",".join(r) + ",mumps_options")
     rprint(f"{a.workflow},{a.mesh},{'ufl' if a.ufl else 'numpy'},{comm.size},"
-           + ",".join(f"{v:.3f}" for v in r.values()))
+           + ",".join(f"{v:.1e}" if k == "mumps_relres" else f"{v:.3f}" for k, v in r.items())
+           + f",{a.mumps.replace(',', ' ')}")
 
 
 if __name__ == "__main__":
