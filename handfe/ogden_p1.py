@@ -33,11 +33,23 @@ def ogden_dev_stress_tangent(F: np.ndarray, mu: np.ndarray, alpha: np.ndarray, *
         return sp["P"], (_tangent(F, sp) if tangent else None)
 
 
+# the unordered pairs (a, b), a < b, of principal directions
+_PA, _PB = np.array([0, 0, 1]), np.array([1, 2, 2])
+
+
+def _det3(F: np.ndarray) -> np.ndarray:
+    """det F of (n, 3, 3), signed (10x cheaper than ``numpy.linalg.det``'s LU per matrix)."""
+    return (F[:, 0, 0] * (F[:, 1, 1] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 1])
+            - F[:, 0, 1] * (F[:, 1, 0] * F[:, 2, 2] - F[:, 1, 2] * F[:, 2, 0])
+            + F[:, 0, 2] * (F[:, 1, 0] * F[:, 2, 1] - F[:, 1, 1] * F[:, 2, 0]))
+
+
 def _spectral(F, mu, alpha) -> dict[str, np.ndarray]:
-    """The stress P and the spectral quantities :func:`_tangent` needs."""
-    C = np.einsum("nki,nkj->nij", F, F)
+    """The stress P and the spectral quantities :func:`_tangent` needs. (Batched ``matmul``
+    rather than ``einsum``: 2-6x faster on stacks of 3 x 3 matrices.)"""
+    C = np.matmul(F.transpose(0, 2, 1), F)
     c, N = np.linalg.eigh(C)  # c ascending (n, 3); N[:, :, a] eigenvector a
-    J = np.linalg.det(F)
+    J = _det3(F)
     lb = np.sqrt(c) * (J ** (-1.0 / 3.0))[:, None]  # (n, 3) isochoric stretches
     # w_a = lb_a dW/dlb_a, h_a = lb_a d(w_a)/dlb_a
     pw = lb[:, :, None] ** alpha[:, None, :]  # (n, 3, m)
@@ -45,8 +57,8 @@ def _spectral(F, mu, alpha) -> dict[str, np.ndarray]:
     h = np.einsum("nap,np->na", pw, 2.0 * mu)
     beta = w - w.mean(axis=1, keepdims=True)  # principal Kirchhoff stress (deviatoric)
     S_a = beta / c
-    S = np.einsum("na,nia,nja->nij", S_a, N, N)
-    P = np.einsum("niI,nIJ->niJ", F, S)
+    S = np.matmul(N * S_a[:, None, :], N.transpose(0, 2, 1))  # sum_a S_a N_a x N_a
+    P = np.matmul(F, S)
     return {"P": P, "c": c, "N": N, "h": h, "beta": beta, "S_a": S_a, "S": S}
 
 
@@ -59,27 +71,30 @@ def _tangent(F, sp: dict[str, np.ndarray]) -> np.ndarray:
         + h.sum(axis=1)[:, None, None] / 9.0
     # D_ab = (1/lambda_b) dS_a/dlambda_b
     D = (g - 2.0 * beta[:, :, None] * eye) / (c[:, :, None] * c[:, None, :])
-    # off-diagonal coefficients (S_b - S_a) / (c_b - c_a), coincident limit (D_bb - D_ab) / 2
-    dc = c[:, None, :] - c[:, :, None]
-    dS = S_a[:, None, :] - S_a[:, :, None]
-    lim = 0.5 * (np.einsum("nbb->nb", D)[:, None, :] - D)
-    close = np.abs(dc) <= COINCIDENT_RTOL * c.max(axis=1)[:, None, None]
-    theta = np.where(close, lim, dS / np.where(close, 1.0, dc))
-    theta[:, eye.astype(bool)] = 0.0
+    # per pair a < b: theta_ab = (S_b - S_a) / (c_b - c_a), coincident limit (D_bb - D_ab) / 2
+    dc = c[:, _PB] - c[:, _PA]
+    lim = 0.5 * (D[:, _PB, _PB] - D[:, _PA, _PB])
+    close = np.abs(dc) <= COINCIDENT_RTOL * c.max(axis=1)[:, None]
+    theta = np.where(close, lim, (S_a[:, _PB] - S_a[:, _PA]) / np.where(close, 1.0, dc))
     # A_iJkL = delta_ik S_JL + F_iI CC_IJKL F_kK with CC = 2 dS/dC; in the principal frame
     # CC_aabb = D_ab, CC_abab = CC_abba = theta_ab (a != b), and with Q_ab = (F N_a) x N_b the
-    # second part is sum D_ab Q_aa x Q_bb + theta_ab (Q_ab x Q_ab + Q_ab x Q_ba)
-    f = np.einsum("niI,nIa->nia", F, N)
-    # Qm[n, a, b, iJ] = f_ia N_Jb
-    Qm = np.einsum("nia,nJb->nabiJ", f, N).reshape(n, 3, 3, 9)
-    Qd = Qm[:, [0, 1, 2], [0, 1, 2]]  # (n, 3, 9): Q_aa
-    A9 = np.matmul(np.matmul(Qd.transpose(0, 2, 1), D), Qd)
-    ia, ib = np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1])
-    Qab, Qba = Qm[:, ia, ib], Qm[:, ib, ia]  # (n, 6, 9)
-    A9 += np.matmul((Qab * theta[:, ia, ib, None]).transpose(0, 2, 1), Qab + Qba)
+    # second part is sum_ab D_ab Q_aa x Q_bb + sum_(a<b) theta_ab M_ab x M_ab, M_ab = Q_ab + Q_ba
+    # (theta is symmetric): G^T K G with G = [Q_00, Q_11, Q_22, M_01, M_02, M_12] (n, 6, 9)
+    # and K = diag(D, theta)
+    ft = np.matmul(F, N).transpose(0, 2, 1)  # ft[n, a, i] = (F N_a)_i
+    Nt = N.transpose(0, 2, 1)  # Nt[n, a, J] = (N_a)_J
+    G = np.empty((n, 6, 3, 3))
+    np.multiply(ft[:, :, :, None], Nt[:, :, None, :], out=G[:, :3])
+    G[:, 3:] = ft[:, _PA, :, None] * Nt[:, _PB, None, :]
+    G[:, 3:] += ft[:, _PB, :, None] * Nt[:, _PA, None, :]
+    G = G.reshape(n, 6, 9)
+    K = np.zeros((n, 6, 6))
+    K[:, :3, :3] = D
+    K[:, [3, 4, 5], [3, 4, 5]] = theta
+    A9 = np.matmul(G.transpose(0, 2, 1), np.matmul(K, G))
     A = A9.reshape(n, 3, 3, 3, 3)
-    A += eye[None, :, None, :, None] * S[:, None, :, None, :]
-    assert A.shape == (n, 3, 3, 3, 3)
+    for i in range(3):
+        A[:, i, :, i, :] += S
     return A
 
 
