@@ -117,26 +117,33 @@ def test_kernel_forms_are_the_derivatives_of_the_energy():
     assert db.norm() <= 1e-6 * Ae.norm()
 
 
+def _cube_kernel(mat: Ogden, cells: tuple[int, int, int]):
+    """An :class:`OgdenP1Kernel` of ``mat`` on a unit cube of ``cells`` (one rank); returns it,
+    the displacement and the parameter Functions (mu, alpha)."""
+    import ufl
+    from dolfinx import fem, mesh
+
+    msh = mesh.create_unit_cube(MPI.COMM_SELF, *cells)
+    V = fem.VectorFunctionSpace(msh, ("CG", 1))
+    u = fem.Function(V)
+    n = len(mat.mu_MPa)
+    D = fem.VectorFunctionSpace(msh, ("DG", 0), dim=n)
+    mu, alpha = fem.Function(D), fem.Function(D)
+    mu.x.array[:] = np.tile(mat.mu_MPa, mu.x.array.size // n)
+    alpha.x.array[:] = np.tile(mat.alpha, alpha.x.array.size // n)
+    dx1 = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": 1})
+    k = OgdenP1Kernel(msh, u, mu, alpha, ufl.TestFunction(V), ufl.TrialFunction(V), dx1)
+    return k, u, mu, alpha
+
+
 def test_kernel_shear_modulus_is_mu0_at_rest_and_mu_lambda_alpha_when_stretches_coincide():
     """The incremental shear modulus behind the tangent stabilisation of p1-p1s
     (:meth:`OgdenP1Kernel.shear_modulus`): sum mu_p = mu0 at rest and under a pure dilatation
     (isochoric stretches 1); for an isochoric state with two equal stretches it is the mean
     over the principal planes of mu_p lbar^alpha_p; under 50 % compression of the fat it is
     ~20 x mu0 (the pads' stiffening that the mu0-based term ignores)."""
-    import ufl
-    from dolfinx import fem, mesh
-
     fat = Ogden.subcutaneous(nu=0.499)
-    msh = mesh.create_unit_cube(MPI.COMM_SELF, 1, 1, 1)
-    V = fem.VectorFunctionSpace(msh, ("CG", 1))
-    u = fem.Function(V)
-    n = len(fat.mu_MPa)
-    D = fem.VectorFunctionSpace(msh, ("DG", 0), dim=n)
-    mu, alpha = fem.Function(D), fem.Function(D)
-    mu.x.array[:] = np.tile(fat.mu_MPa, mu.x.array.size // n)
-    alpha.x.array[:] = np.tile(fat.alpha, alpha.x.array.size // n)
-    dx1 = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": 1})
-    k = OgdenP1Kernel(msh, u, mu, alpha, ufl.TestFunction(V), ufl.TrialFunction(V), dx1)
+    k, u, _, _ = _cube_kernel(fat, (1, 1, 1))
     mu0 = sum(fat.mu_MPa)
 
     def modulus(stretch) -> np.ndarray:
@@ -159,19 +166,8 @@ def test_kernel_reuses_the_residual_call_only_at_the_same_state():
     """Newton asks for the tangent where it has just evaluated the residual: the kernel reuses
     that call's stress and eigendecomposition, and the fields it writes are those of a fresh
     computation - also after the state or the parameters change."""
-    import ufl
-    from dolfinx import fem, mesh
-
-    msh = mesh.create_unit_cube(MPI.COMM_SELF, 2, 1, 1)
-    V = fem.VectorFunctionSpace(msh, ("CG", 1))
-    u = fem.Function(V)
+    k, u, mu, alpha = _cube_kernel(SKIN, (2, 1, 1))
     n = len(SKIN.mu_MPa)
-    D = fem.VectorFunctionSpace(msh, ("DG", 0), dim=n)
-    mu, alpha = fem.Function(D), fem.Function(D)
-    mu.x.array[:] = np.tile(SKIN.mu_MPa, mu.x.array.size // n)
-    alpha.x.array[:] = np.tile(SKIN.alpha, alpha.x.array.size // n)
-    dx1 = ufl.Measure("dx", domain=msh, metadata={"quadrature_degree": 1})
-    k = OgdenP1Kernel(msh, u, mu, alpha, ufl.TestFunction(V), ufl.TrialFunction(V), dx1)
     ncell = len(k.cells)
 
     def fresh():
