@@ -63,6 +63,7 @@ def _spectral(F, mu, alpha) -> dict[str, np.ndarray]:
 
 
 def _tangent(F, sp: dict[str, np.ndarray]) -> np.ndarray:
+    """The tangent A = dP/dF (n, 3, 3, 3, 3), MPa, from :func:`_spectral`'s data at ``F``."""
     n = F.shape[0]
     c, N, h, beta, S_a, S = (sp[k] for k in ("c", "N", "h", "beta", "S_a", "S"))
     # g_ab = lambda_b d(beta_a)/d(lambda_b)
