@@ -25,7 +25,7 @@ from petsc4py import PETSc
 
 from handfe.grasp import run_workflow, scene
 from handfe.parallel import rprint
-from handfe.solver import mumps_lu_ksp
+from handfe.solver import MUMPS_OPTIONS, mumps_lu_ksp
 
 
 def _measure(self) -> None:
@@ -54,11 +54,12 @@ def _measure(self) -> None:
         return go
 
     def lu():
-        # Newton's MUMPS options (handfe.grasp.fe: ICNTL(14) = 200) and any of --mumps
+        # Newton's MUMPS options and any of --mumps
         ksp = mumps_lu_ksp(comm, A)
         opts = PETSc.Options()
-        for k, v in {"icntl_14": "200", **_measure.mumps}.items():
-            opts[f"profile_mat_mumps_{k}"] = v
+        mumps = {**MUMPS_OPTIONS, **{f"mat_mumps_{k}": v for k, v in _measure.mumps.items()}}
+        for k, v in mumps.items():
+            opts[f"profile_{k}"] = v
         ksp.setOptionsPrefix("profile_")
         ksp.setFromOptions()
         return ksp
@@ -73,25 +74,26 @@ def _measure(self) -> None:
         ksp.destroy()
         y.destroy()
 
+    kernel = self.problem.kernel
+
+    def forget(keep_stress=False):
+        if kernel is not None:
+            kernel.forget(keep_stress=keep_stress)
+
     def ogden(tangent):
         def go():
-            kernel = self.problem.kernel
-            if kernel is not None:
-                kernel._last = None  # recompute: the kernel caches the last state's stress
+            forget()  # recompute: the kernel caches the last state's stress
             self.problem.update(tangent)
         return go
 
     def jacobian():
         # after a residual at the same state, as in Newton: the NumPy kernel reuses that call's
         # stress and eigendecomposition and computes the tangent
-        kernel = self.problem.kernel
-        if kernel is not None and kernel._last is not None:
-            kernel._last[2] = False
+        forget(keep_stress=True)
         S._jacobian(None, x, A, A)
 
     def residual():
-        if self.problem.kernel is not None:
-            self.problem.kernel._last = None  # each residual of Newton is at a new state
+        forget()  # each residual of Newton is at a new state
         S._residual(None, x, b)
 
     r = {"residual_s": tm(residual),

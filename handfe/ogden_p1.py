@@ -137,9 +137,17 @@ class OgdenP1Kernel:
         self.residual = ufl.inner(Pm, gv) * dx
         self.jacobian = ufl.dot(gv9, Am * gd9) * dx
 
+    def forget(self, *, keep_stress: bool = False) -> None:
+        """Make the next :meth:`update` recompute the tangent, and the stress too unless
+        ``keep_stress`` (benchmarks time the computation this way)."""
+        if keep_stress and self._last is not None:
+            self._last[2] = False
+        else:
+            self._last = None
+
     def refresh_parameters(self) -> None:
         """Re-read the Ogden parameter Functions (after a material change)."""
-        self._last = None
+        self.forget()
         self._mu = self._mu_fn.x.array.reshape(-1, self._m)[self._blk]
         self._alpha = self._alpha_fn.x.array.reshape(-1, self._m)[self._blk]
 
@@ -170,13 +178,12 @@ class OgdenP1Kernel:
         residual's share was half the tangent call's 50 ms per rank on the coarse pinch)."""
         F = self._deformation_gradient()
         last = self._last
-        if last is None or not np.array_equal(F, last[0]):
-            with np.errstate(invalid="ignore", divide="ignore"):  # as ogden_dev_stress_tangent
+        with np.errstate(invalid="ignore", divide="ignore"):  # as ogden_dev_stress_tangent
+            if last is None or not np.array_equal(F, last[0]):
                 sp = _spectral(F, self._mu, self._alpha)
-            self.P.x.array.reshape(-1, 9)[self._pdof] = sp["P"].reshape(-1, 9)
-            last = self._last = [F, sp, False]
-        if tangent and not last[2]:
-            with np.errstate(invalid="ignore", divide="ignore"):
+                self.P.x.array.reshape(-1, 9)[self._pdof] = sp["P"].reshape(-1, 9)
+                last = self._last = [F, sp, False]
+            if tangent and not last[2]:
                 A = _tangent(F, last[1])
-            self.A.x.array.reshape(-1, 81)[self._adof] = A.reshape(-1, 81)
-            last[2] = True
+                self.A.x.array.reshape(-1, 81)[self._adof] = A.reshape(-1, 81)
+                last[2] = True

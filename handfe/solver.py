@@ -35,6 +35,9 @@ from handfe.step_guard import InversionGuard
 
 ELEMENTS = ("taylor-hood", "p2", "p1", "p1-p0")
 MIXED_ELEMENTS = ("taylor-hood", "p1-p0")
+#: the MUMPS options of every Newton LU (ICNTL(14): +200 % workspace over the analysis's
+#: estimate, so a factorisation does not fail for lack of it)
+MUMPS_OPTIONS = {"mat_mumps_icntl_14": 200}
 _prefix_counter = itertools.count()
 
 
@@ -396,8 +399,7 @@ class NewtonSolver:
         db = PETSc.Options()
         defaults = {"snes_type": "newtonls", "snes_linesearch_type": opts.linesearch,
                     "ksp_type": "preonly", "pc_type": "lu",
-                    "pc_factor_mat_solver_type": opts.linear_solver,
-                    "mat_mumps_icntl_14": 200}
+                    "pc_factor_mat_solver_type": opts.linear_solver, **MUMPS_OPTIONS}
         defaults.update(opts.petsc_options)
         for k, v in defaults.items():
             db[self.prefix + k] = v

@@ -22,7 +22,7 @@ from petsc4py import PETSc
 
 from handfe.errors import InputError
 from handfe.materials import BoundMaterial, NeoHookean, Ogden, StVenantKirchhoff
-from handfe.solver import Discretisation, lift_unless_satisfied, mumps_lu_ksp
+from handfe.solver import MUMPS_OPTIONS, Discretisation, lift_unless_satisfied, mumps_lu_ksp
 from handfe.step_guard import InversionGuard
 
 SKIN, SUBCUT, NAIL = 1, 2, 3
@@ -299,7 +299,7 @@ class TwoFormNewton:
         snes.setOptionsPrefix(prefix)
         opts = {"snes_type": "newtonls", "snes_linesearch_type": line_search,
                 "ksp_type": "preonly", "pc_type": "lu", "pc_factor_mat_solver_type": "mumps",
-                "mat_mumps_icntl_14": 200}
+                **MUMPS_OPTIONS}
         db = PETSc.Options()
         for k, v in opts.items():
             db[prefix + k] = v
