@@ -26,6 +26,7 @@ from handfe.grasp.scene import (
     DigitStepLimiter,
     balance_problems,
     damped_newton_step,
+    redo_closing_fraction,
     secant_closing_increment,
 )
 from handfe.kinematics import Pose
@@ -109,14 +110,44 @@ def test_secant_closing_increment():
     assert secant_closing_increment(None, 0.0, 0.0, 5.0, 0.2, 0.5) == 0.5
     assert secant_closing_increment((0.0, 0.0), 0.5, 0.1, 5.0, 0.2, 0.5) == 0.5
     assert secant_closing_increment((0.0, 1.0), 0.5, 0.9, 5.0, 0.2, 0.5) == 0.5
-    # exponential force F = 0.1 exp(4 theta): the secant is exact, aimed at 0.9 x 5 N
+    # exponential force F = 0.01 exp(4 theta): the secant is exact, aimed at 0.9 x 5 N ...
     f = lambda t: 0.01 * np.exp(4.0 * t)  # noqa: E731
-    inc = secant_closing_increment((0.5, f(0.5)), 1.0, f(1.0), 5.0, 0.2, 1.0)
+    inc = secant_closing_increment((0.5, f(0.5)), 1.0, f(1.0), 5.0, 0.2, 1.0, max_ratio=1e9)
     assert 0.0 < inc < 1.0 and f(1.0 + inc) == pytest.approx(4.5, rel=1e-12)
+    # ... or at 3 x the force now (0.55 N), whichever is smaller (the default ratio)
+    inc = secant_closing_increment((0.5, f(0.5)), 1.0, f(1.0), 5.0, 0.2, 1.0)
+    assert f(1.0 + inc) == pytest.approx(3.0 * f(1.0), rel=1e-12)
+    inc = secant_closing_increment((0.5, f(0.5)), 1.0, 2.0, 5.0, 0.2, 1.0)
+    assert np.log(4.5 / 2.0) / np.log(2.0 / f(0.5)) * 0.5 == pytest.approx(inc, rel=1e-12)
     # far from the target: capped at the step; at the target: the smallest step
-    assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5) == 0.5
+    assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5,
+                                    max_ratio=1e9) == 0.5
+    assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5) == \
+        pytest.approx(np.log(3.0) / 4.0, rel=1e-12)
     assert secant_closing_increment((0.5, f(0.5)), 1.0, 4.6, 5.0, 0.2, 0.5) == \
         pytest.approx(0.01)
+
+
+def test_redo_closing_fraction():
+    aim = 0.975 * 5.0
+    # exponential force in the increment's fraction x: the log regula falsi is exact
+    f = lambda x: 0.5 * np.exp(3.0 * x)  # noqa: E731
+    x = redo_closing_fraction(f(0.0), f(1.0), 5.0, 0.05)
+    assert f(x) == pytest.approx(aim, rel=1e-12)
+    # a concave log-force (a power law, 0.32 -> 11.5 N): the plain fraction lands high (7.4
+    # N); the second try with the start's log-distance halved lands in the 5 % band, where
+    # the plain regula falsi again would be above it
+    g = lambda x: 8.0 * (0.2 + x) ** 2  # noqa: E731
+    x1 = redo_closing_fraction(g(0.0), g(1.0), 5.0, 0.05)
+    assert g(x1) > 5.25
+    x2 = x1 * redo_closing_fraction(g(0.0), g(x1), 5.0, 0.05, repeat=1)
+    plain = x1 * redo_closing_fraction(g(0.0), g(x1), 5.0, 0.05)
+    assert 4.75 < g(x2) < 5.25 < g(plain)
+    # capped: never the whole increment again, never less than 5 % of it
+    assert redo_closing_fraction(1.0, 5.1, 5.0, 0.0) == 0.95
+    assert redo_closing_fraction(4.7, 50.0, 5.0, 0.05) == 0.05
+    # a start at or above the aim (nothing to interpolate): the smallest fraction
+    assert redo_closing_fraction(4.9, 6.0, 5.0, 0.05) == 0.05
 
 
 def test_torque_step_is_limited_digit_by_digit():

@@ -619,23 +619,56 @@ def damped_newton_step(K: np.ndarray, g: np.ndarray, groups: list[str],
         return np.linalg.lstsq(K + np.diag(lam), g, rcond=None)[0]
 
 
+# a closing step aims at most this x the digit's current force (the pinch's index went from
+# 0.68 N to 7.7 N in one step aimed at 4.9 N; docs/grasp.md, thirty-first session)
+CLOSING_FORCE_RATIO = 3.0
+
+
 def secant_closing_increment(last: tuple[float, float] | None, closed_deg: float,
                              force_N: float, target_N: float, rtol: float,
-                             max_step_deg: float) -> float:
+                             max_step_deg: float,
+                             max_ratio: float = CLOSING_FORCE_RATIO) -> float:
     """Next closing angle of a digit (deg): the log-force secant through its last two
     (closed angle, force) pairs ``last`` and (``closed_deg``, ``force_N``), aimed at
-    (1 - rtol / 2) x ``target_N``, within [0.02, 1] x ``max_step_deg``; ``max_step_deg``
-    without a usable secant (first step, no force yet, force not rising). A pad's force grows
-    faster than exponentially with the angle once it presses (0.5 deg took the pinch's middle
-    finger from 3 to 40 N), so the secant undershoots the slope and steps stay short."""
+    (1 - rtol / 2) x ``target_N`` or ``max_ratio`` x ``force_N``, whichever is smaller,
+    within [0.02, 1] x ``max_step_deg``; ``max_step_deg`` without a usable secant (first
+    step, no force yet, force not rising). A pad's force can grow faster than exponentially
+    with the angle once it presses (0.5 deg took the pinch's middle finger from 3 to 40 N),
+    so a long extrapolation overshoots and the step is redone; ``max_ratio`` keeps it short."""
     if last is None:
         return max_step_deg
     c0, f0 = last
     if not (f0 > 1e-3 * target_N and force_N > 1.01 * f0 and closed_deg > c0):
         return max_step_deg
     g = math.log(force_N / f0) / (closed_deg - c0)
-    aim = (1.0 - 0.5 * rtol) * target_N
+    aim = min((1.0 - 0.5 * rtol) * target_N, max_ratio * force_N)
     return float(np.clip(math.log(aim / force_N) / g, 0.02 * max_step_deg, max_step_deg))
+
+
+# a closing step whose Uzawa updates take a digit past this x digit_force_N is redone at once;
+# a smaller overshoot is measured after the updates (a regula falsi on a mid-phase force,
+# which is a lower bound, lands high)
+OVERSHOOT_ABANDON = 1.5
+
+
+def redo_closing_fraction(start_N: float, over_N: float, target_N: float, rtol: float,
+                          repeat: int = 0) -> float:
+    """Fraction of an overshooting closing increment to redo it with: the log-force regula
+    falsi between the step's start (fraction 0, ``start_N``) and the overshoot (fraction 1,
+    ``over_N``), aimed at (1 - rtol / 2) x ``target_N``, within [0.05, 0.95]. ``repeat``
+    overshoots of the same step before this one halve the start's log-distance to the aim
+    each (Illinois), so a concave log-force curve does not keep the retries landing high.
+
+    In the logs of 11 redone steps (coarse and default pinch, reduced sphere; docs/grasp.md)
+    the plain log regula falsi fraction (0.75-0.95) was within 0.03 of the one that lands on
+    the aim in 9, judged by interpolating between the tries; the former cap of 0.7 made all
+    11 land 0.1-2.5 N short of it."""
+    aim = (1.0 - 0.5 * rtol) * target_N
+    g0 = math.log(max(start_N, 1e-3 * target_N) / aim) * 0.5 ** repeat
+    g1 = math.log(over_N / aim)
+    if not (g0 < 0.0 < g1):
+        return 0.05
+    return float(np.clip(-g0 / (g1 - g0), 0.05, 0.95))
 
 
 class GraspFE:
@@ -1200,14 +1233,15 @@ class GraspFE:
         return secant_closing_increment(last, closed, force, s.digit_force_N,
                                         s.digit_force_rtol, s.closing_step_deg)
 
-    def _overshoots(self, active: list[str], before: dict[str, float]
-                    ) -> tuple[list[str], dict[str, float]]:
+    def _overshoots(self, active: list[str], before: dict[str, float],
+                    limit_N: float | None = None) -> tuple[list[str], dict[str, float]]:
         """Digits of ``active`` that were below ``digit_force_N`` (forces ``before``) and are
-        now past (1 + rtol) x it; and the digit forces now."""
+        now past ``limit_N`` (default (1 + rtol) x digit_force_N); and the digit forces now."""
         s = self.wf.solver
+        if limit_N is None:
+            limit_N = (1.0 + s.digit_force_rtol) * s.digit_force_N
         now = self.digit_forces()
-        return [d for d in active if now[d] > (1.0 + s.digit_force_rtol) * s.digit_force_N
-                and before[d] < s.digit_force_N], now
+        return [d for d in active if now[d] > limit_N and before[d] < s.digit_force_N], now
 
     def solve_angles(self) -> None:
         """Kinematic closing (:meth:`_close_digits`), then the Uzawa phase removes the remaining
@@ -1358,6 +1392,7 @@ class GraspFE:
                 last[d] = (closed[d], forces[d])
             snap = self._snapshot()
             retreat = s.closing_secant
+            repeat = dict.fromkeys(active, 0)  # overshoots of this step so far, per digit
             for retry in range(4):
                 theta = self.theta.copy()
                 for d in active:
@@ -1379,37 +1414,39 @@ class GraspFE:
                         self.say(f"    {', '.join(active)} stop closing here: {exc}")
                     inc = {}
                     break
-                # a digit far past its force (the pad stiffens abruptly once it presses): back
+                # a digit past its force band (the pad stiffens abruptly once it presses): back
                 # to the step's start and a log-force regula falsi for the overshooting digits.
-                # Checked before the Uzawa updates too (they only add force): no updates are
-                # spent on a step that is redone anyway
+                # The Uzawa updates only add force, but a force measured before they end is a
+                # lower bound, and a regula falsi on it lands high (the pinch's index: 6.7 N
+                # after the first update, then 5.6 and 5.3 N on the redone steps). So a step
+                # is abandoned before its updates end only when a digit is past
+                # OVERSHOOT_ABANDON x digit_force_N; a smaller one is measured after them
                 over: list[str] = []
                 f_new: dict[str, float] = {}
                 check = retreat and retry < 3
+                far = max(OVERSHOOT_ABANDON, 1.0 + s.digit_force_rtol) * s.digit_force_N
                 for phase in ("solve", "uzawa"):
                     if phase == "uzawa":
-                        # penetration only (stick creep is the final Uzawa phase's job); the
-                        # updates stop as soon as a digit overshoots (they only add force)
+                        # penetration only (stick creep is the final Uzawa phase's job)
                         if s.step_uzawa:
                             self.augment(s.step_penetration_mm, creep=False,
-                                         stop=(lambda a=active, f=forces: bool(
-                                             self._overshoots(a, f)[0])) if check else None)
+                                         stop=(lambda a=active, f=forces, lim=far: bool(
+                                             self._overshoots(a, f, lim)[0])) if check else None)
                         else:
                             self._stiffen()
                     if check:
                         over, f_new = self._overshoots(active, forces)
-                    if over:
+                    if over and (phase == "uzawa" or max(f_new[d] for d in over) > far):
                         break
                 if not over:
                     break
                 self.say("    " + ", ".join(f"{d} {f_new[d]:.2f} N" for d in over)
                          + f" overshoots {s.digit_force_N:g} N: step redone smaller")
                 self._restore(snap)
-                aim = (1.0 - 0.5 * s.digit_force_rtol) * s.digit_force_N
                 for d in over:
-                    f0 = max(forces[d], 1e-3 * s.digit_force_N)
-                    frac = math.log(aim / f0) / math.log(f_new[d] / f0)
-                    inc[d] *= float(np.clip(frac, 0.05, 0.7))
+                    inc[d] *= redo_closing_fraction(forces[d], f_new[d], s.digit_force_N,
+                                                    s.digit_force_rtol, repeat[d])
+                    repeat[d] += 1
             for d in inc:
                 closed[d] += inc[d]
             theta = self.theta.copy()
