@@ -193,7 +193,8 @@ class SolverSpec:
     # only raising the penalty
     step_uzawa: bool = False
     # angles mode: closing_secant sizes each digit's next step from its last two (angle, force)
-    # pairs (log-force secant aimed just under digit_force_N; at most closing_step_deg); a
+    # pairs (log-force secant aimed just under digit_force_N or at 3x the digit's force,
+    # whichever is smaller; at most closing_step_deg) and redoes a step that overshoots; a
     # digit stops once its force is >= (1 - digit_force_rtol) x digit_force_N. The band is the
     # closing's, not the result's: the other digits' closing and the final Uzawa phase move a
     # stopped digit's force (coarse pinch at rtol 0.02: -5 to +27 % off; docs/grasp.md)
