@@ -117,9 +117,11 @@ def test_secant_closing_increment():
     # ... or at 3 x the force now (0.55 N), whichever is smaller (the default ratio)
     inc = secant_closing_increment((0.5, f(0.5)), 1.0, f(1.0), 5.0, 0.2, 1.0)
     assert f(1.0 + inc) == pytest.approx(3.0 * f(1.0), rel=1e-12)
+    # (at 2 N, 3x is past the target: the target's secant step)
     inc = secant_closing_increment((0.5, f(0.5)), 1.0, 2.0, 5.0, 0.2, 1.0)
-    assert np.log(4.5 / 2.0) / np.log(2.0 / f(0.5)) * 0.5 == pytest.approx(inc, rel=1e-12)
-    # far from the target: capped at the step; at the target: the smallest step
+    assert inc == pytest.approx(0.5 * np.log(4.5 / 2.0) / np.log(2.0 / f(0.5)), rel=1e-12)
+    # far from the target: capped at the step (without the ratio; with it, the step that
+    # triples the force); at the target: the smallest step
     assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5,
                                     max_ratio=1e9) == 0.5
     assert secant_closing_increment((0.0, f(0.0)), 0.1, f(0.1), 5.0, 0.2, 0.5) == \
