@@ -619,6 +619,13 @@ def damped_newton_step(K: np.ndarray, g: np.ndarray, groups: list[str],
         return np.linalg.lstsq(K + np.diag(lam), g, rcond=None)[0]
 
 
+def closing_aim_N(target_N: float, rtol: float) -> float:
+    """The force (N) a closing step aims a digit at: the middle of the lower half of the band
+    [(1 - rtol), (1 + rtol)] x ``target_N``, so that a step that falls a little short stops the
+    digit and one that goes a little over is not redone."""
+    return (1.0 - 0.5 * rtol) * target_N
+
+
 # a closing step aims at most this x the digit's current force (the pinch's index went from
 # 0.68 N to 7.7 N in one step aimed at 4.9 N; docs/grasp.md, thirty-first session)
 CLOSING_FORCE_RATIO = 3.0
@@ -641,7 +648,7 @@ def secant_closing_increment(last: tuple[float, float] | None, closed_deg: float
     if not (f0 > 1e-3 * target_N and force_N > 1.01 * f0 and closed_deg > c0):
         return max_step_deg
     g = math.log(force_N / f0) / (closed_deg - c0)
-    aim = min((1.0 - 0.5 * rtol) * target_N, max_ratio * force_N)
+    aim = min(closing_aim_N(target_N, rtol), max_ratio * force_N)
     return float(np.clip(math.log(aim / force_N) / g, 0.02 * max_step_deg, max_step_deg))
 
 
@@ -663,7 +670,7 @@ def redo_closing_fraction(start_N: float, over_N: float, target_N: float, rtol: 
     the plain log regula falsi fraction (0.75-0.95) was within 0.03 of the one that lands on
     the aim in 9, judged by interpolating between the tries; the former cap of 0.7 made all
     11 land 0.1-2.5 N short of it."""
-    aim = (1.0 - 0.5 * rtol) * target_N
+    aim = closing_aim_N(target_N, rtol)
     g0 = math.log(max(start_N, 1e-3 * target_N) / aim) * 0.5 ** repeat
     g1 = math.log(over_N / aim)
     if not (g0 < 0.0 < g1):
@@ -1364,6 +1371,8 @@ class GraspFE:
         k = 0
         last: dict[str, tuple[float, float]] = {}  # digit -> (closed, force) before its last step
         f_stop = (1.0 - s.digit_force_rtol) * s.digit_force_N
+        # past this force a step is redone before its Uzawa updates end (see below)
+        far = max(OVERSHOOT_ABANDON, 1.0 + s.digit_force_rtol) * s.digit_force_N
         # digits that close one at a time: a step of several digits that fails is redone digit
         # by digit, so one digit whose step Newton cannot solve does not stop the others
         solo: set[str] = set()
@@ -1424,14 +1433,13 @@ class GraspFE:
                 over: list[str] = []
                 f_new: dict[str, float] = {}
                 check = retreat and retry < 3
-                far = max(OVERSHOOT_ABANDON, 1.0 + s.digit_force_rtol) * s.digit_force_N
                 for phase in ("solve", "uzawa"):
                     if phase == "uzawa":
                         # penetration only (stick creep is the final Uzawa phase's job)
                         if s.step_uzawa:
                             self.augment(s.step_penetration_mm, creep=False,
-                                         stop=(lambda a=active, f=forces, lim=far: bool(
-                                             self._overshoots(a, f, lim)[0])) if check else None)
+                                         stop=(lambda a=active, f=forces: bool(
+                                             self._overshoots(a, f, far)[0])) if check else None)
                         else:
                             self._stiffen()
                     if check:
