@@ -160,3 +160,46 @@ def test_failing_step_raises_after_max_cuts_back_at_its_start():
     assert sc.problem.w.x.array[0] == 0.0 and sc.bc.frac == 0.0
     assert sc.theta[0] == 0.0 and sc.motions == "start"
     assert sc.contact.history_due and sc.contact.lambda_t.x.array[0] == 0.0
+
+
+class _StallSolver:
+    """Stand-in for a re-solve: backtracking fails after ``its`` iterations; counts the
+    full-step continuations asked for."""
+
+    max_it = 40
+
+    def __init__(self, its):
+        self.its, self.continued = its, 0
+
+    def solve(self, line_search=None):
+        return False, self.its, "-5"
+
+    def continue_after_stall(self):
+        self.continued += 1
+        return False, 3, "-4"
+
+
+@pytest.mark.parametrize("its, continued", [(40, 0), (12, 1)])
+def test_a_resolve_goes_on_with_full_steps_only_if_backtracking_stopped_early(its, continued):
+    """After backtracking crawled through its whole budget, full steps from its last iterate
+    failed in every logged re-solve: the re-solve then fails at once (state and data restored);
+    a stall before the budget still gets the continuation."""
+    sc = object.__new__(GraspFE)
+    arr = SimpleNamespace(array=np.array([1.0]), scatter_forward=lambda: None)
+    sc.problem = SimpleNamespace(w=SimpleNamespace(x=arr))
+    sc.wf = SimpleNamespace(solver=SimpleNamespace(resolve_linesearch="bt"))
+    sc._lag_stabilisation = lambda: None
+    sc.messages = []
+    sc.say = sc.messages.append
+    sc.solver = _StallSolver(its)
+    undone = []
+
+    def set_state(a):
+        arr.array[:] = a
+
+    sc._set_state = set_state
+    arr.array[:] = 1.0
+    assert not sc._resolve("Uzawa update 1", lambda: undone.append(True))
+    assert sc.solver.continued == continued
+    assert undone == [True] and arr.array[0] == 1.0
+    assert sc.messages[-1].endswith(f"({its + 3 * continued} iterations)")

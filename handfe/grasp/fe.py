@@ -285,6 +285,7 @@ class TwoFormNewton:
         # backtracking stalls at a kink of the contact law (semi-smooth residual)
         self._snes = {ls: self._make_snes(ls, rtol, atol, max_it) for ls in ("bt", "basic")}
         self.atol = atol  # N: absolute tolerance of the residual norm (set_atol changes it)
+        self.max_it = max_it  # Newton iterations per solve, either line search
         self.line_search = "bt"
         self.snes = self._snes["bt"]
         self.iterations = 0

@@ -1013,15 +1013,20 @@ class GraspFE:
         ok, its, reason = self.solver.solve(ls)
         if not ok:
             its0 = its
-            res = self.solver.continue_after_stall()
+            # full steps only after backtracking stopped short of its budget: in the run logs
+            # of sessions 29-32 no re-solve's continuation converged (15 of 15 failed, 10 of
+            # them after a crawl through the whole budget at lambda ~0.1 with NaN full steps,
+            # 3-40 more iterations each); the state and data are restored either way
+            res = self.solver.continue_after_stall() if its0 < self.solver.max_it else None
+            if res is None and ls == "basic":
+                self._set_state(w0)
+                res = self.solver.solve("bt")
+                what += " (full steps failed, bt)"
+            elif res is not None:
+                what += " (bt stalled, full steps from there)"
             if res is not None:
                 ok, its, reason = res
-                what += " (bt stalled, full steps from there)"
-            elif ls == "basic":
-                self._set_state(w0)
-                ok, its, reason = self.solver.solve("bt")
-                what += " (full steps failed, bt)"
-            its += its0
+                its += its0
         self.say(f"    {what}: Newton {'converged' if ok else 'failed: ' + reason} "
                  f"({its} iterations)")
         if not ok:
