@@ -1015,8 +1015,8 @@ class GraspFE:
             its0 = its
             # full steps only after backtracking stopped short of its budget: in the run logs
             # of sessions 29-32 no re-solve's continuation converged (15 of 15 failed, 10 of
-            # them after a crawl through the whole budget at lambda ~0.1 with NaN full steps,
-            # 3-40 more iterations each); the state and data are restored either way
+            # them 41-80 iterations in all, after a crawl at lambda ~0.1 with NaN full steps);
+            # the state and data are restored after a failure either way (docs/grasp.md)
             res = self.solver.continue_after_stall() if its0 < self.solver.max_it else None
             if res is None and ls == "basic":
                 self._set_state(w0)
