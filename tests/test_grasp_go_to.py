@@ -163,43 +163,61 @@ def test_failing_step_raises_after_max_cuts_back_at_its_start():
 
 
 class _StallSolver:
-    """Stand-in for a re-solve: backtracking fails after ``its`` iterations; counts the
-    full-step continuations asked for."""
+    """Stand-in for a re-solve: every solve fails after ``its`` iterations; records the line
+    searches tried and the full-step continuations asked for (which adopt their last iterate,
+    here the state 7)."""
 
     max_it = 40
 
-    def __init__(self, its):
-        self.its, self.continued = its, 0
+    def __init__(self, its, state):
+        self.its, self.state, self.continued, self.tried = its, state, 0, []
 
     def solve(self, line_search=None):
+        self.tried.append(line_search)
         return False, self.its, "-5"
 
     def continue_after_stall(self):
         self.continued += 1
+        self.state[:] = 7.0
         return False, 3, "-4"
 
 
 @pytest.mark.parametrize("its, continued", [(40, 0), (12, 1)])
 def test_a_resolve_goes_on_with_full_steps_only_if_backtracking_stopped_early(its, continued):
     """After backtracking crawled through its whole budget, full steps from its last iterate
-    failed in every logged re-solve: the re-solve then fails at once (state and data restored);
-    a stall before the budget still gets the continuation."""
+    failed in every logged re-solve: the re-solve then fails at once; a stall before the
+    budget still gets the continuation. Either way the state and data come back."""
+    sc = _resolve_scene("bt", its)
+    undone = []
+    assert not sc._resolve("Uzawa update 1", lambda: undone.append(True))
+    assert sc.solver.continued == continued and sc.solver.tried == ["bt"]
+    assert undone == [True] and sc.problem.w.x.array[0] == 1.0
+    assert sc.messages[-1].endswith(f"({its + 3 * continued} iterations)")
+
+
+def test_a_full_step_resolve_that_fails_falls_back_to_backtracking_from_its_start():
+    """``resolve_linesearch = "basic"``: full steps that ran out of iterations are followed by
+    backtracking from the state before the re-solve, iterations summed."""
+    sc = _resolve_scene("basic", 40)
+    assert not sc._resolve("Uzawa update 1", lambda: None)
+    assert sc.solver.tried == ["basic", "bt"] and sc.solver.continued == 0
+    assert "(full steps failed, bt)" in sc.messages[-1]
+    assert sc.messages[-1].endswith("(80 iterations)")
+
+
+def _resolve_scene(line_search: str, its: int) -> GraspFE:
+    """A GraspFE for ``_resolve`` only: the state is one number (1 before the re-solve)."""
     sc = object.__new__(GraspFE)
     arr = SimpleNamespace(array=np.array([1.0]), scatter_forward=lambda: None)
     sc.problem = SimpleNamespace(w=SimpleNamespace(x=arr))
-    sc.wf = SimpleNamespace(solver=SimpleNamespace(resolve_linesearch="bt"))
+    sc.wf = SimpleNamespace(solver=SimpleNamespace(resolve_linesearch=line_search))
     sc._lag_stabilisation = lambda: None
     sc.messages = []
     sc.say = sc.messages.append
-    sc.solver = _StallSolver(its)
-    undone = []
+    sc.solver = _StallSolver(its, arr.array)
 
     def set_state(a):
         arr.array[:] = a
 
     sc._set_state = set_state
-    arr.array[:] = 1.0
-    assert not sc._resolve("Uzawa update 1", lambda: undone.append(True))
-    assert sc.solver.continued == continued
-    assert undone == [True] and arr.array[0] == 1.0
-    assert sc.messages[-1].endswith(f"({its + 3 * continued} iterations)")
+    return sc
