@@ -1018,12 +1018,12 @@ class GraspFE:
             # them 41-80 iterations in all, after a crawl at lambda ~0.1 with NaN full steps);
             # the state and data are restored after a failure either way (docs/grasp.md)
             res = self.solver.continue_after_stall() if its0 < self.solver.max_it else None
-            if res is None and ls == "basic":
+            if res is not None:
+                what += " (bt stalled, full steps from there)"
+            elif ls == "basic":
                 self._set_state(w0)
                 res = self.solver.solve("bt")
                 what += " (full steps failed, bt)"
-            elif res is not None:
-                what += " (bt stalled, full steps from there)"
             if res is not None:
                 ok, its, reason = res
                 its += its0
