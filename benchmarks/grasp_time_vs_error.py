@@ -19,7 +19,7 @@ is part of every run; its saving is in the summary's ``skipped``.
     mpirun -n 2 .venv/bin/python benchmarks/grasp_time_vs_error.py --out results/bench_grasp
 
 A whole-hand run takes 15-25 min at ``reduced`` and over an hour at ``default`` on 2 cores (the
-pinch at ``fine`` 54 min; the whole hand at ``fine`` does not fit in 24 GB), so
+pinch at ``fine`` 59 min; the whole hand at ``fine`` does not fit in 24 GB), so
 finished ``handfe run`` folders can stand in for runs (``--from-runs GRASP:LEVEL=DIR,...``; each
 DIR holds the run's summary.json, regions.csv and fingertips.csv, its wall time is the
 summary's ``wall_s``; a run marked partial or failed is refused):
