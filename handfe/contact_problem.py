@@ -252,14 +252,17 @@ class RigidContact:
         self.lambda_t.x.array[:] = lam.reshape(-1)
         self.lambda_t.x.scatter_forward()
 
-    def augment(self, final: bool = True) -> tuple[bool, float]:
+    def augment(self, final: bool = True, *, tangential: bool = True) -> tuple[bool, float]:
         """Augmented-Lagrangian check after a converged Newton solve.
 
         The penetration (and, with augmented friction, the stick creep) is measured first: if
         it is within the tolerance (or this is an intermediate load step), nothing is changed
         and the solved state stays consistent with its multipliers, so reported forces are the
         ones the solve balanced. Otherwise one Uzawa update (lambda <- p, lambda_t <- t_T) is
-        made and the solver re-solves. Penalty growth: with ``adaptive_penalty`` see the class
+        made and the solver re-solves. ``tangential=False`` leaves lambda_t as it is: right
+        after a return mapping of this state (:meth:`on_step`, itself lambda_t <- t_T) a
+        second lambda_t <- t_T would give each stuck node its stick correction twice. Penalty
+        growth: with ``adaptive_penalty`` see the class
         docstring; otherwise (the standard safeguard) k_n is doubled when the penetration fell
         by less than half since the last update, up to ``max_penalty_growth`` x its start
         value."""
@@ -274,7 +277,7 @@ class RigidContact:
             return True, max(pen, creep)
         prev = self.last_penetration_mm
         self.uzawa()
-        if tT is not None:
+        if tT is not None and tangential:
             self._set_lambda_t(tT)
         self.last_penetration_mm, self.last_creep_mm = pen, creep
         k = float(self.k_n.value)

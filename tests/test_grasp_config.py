@@ -81,6 +81,9 @@ def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nresolve_linesearch = "l2"\n')
     with pytest.raises(ConfigError, match="resolve_linesearch"):
         load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nuzawa_tangential_relax = 0.0\n')
+    with pytest.raises(ConfigError, match="uzawa_tangential_relax"):
+        load_workflow(p)
     p = _write(tmp_path, 'grasp = "precision"\n[outputs]\nloaded_area_kPa = 0.0\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*loaded_area_kPa"):
         load_workflow(p)
@@ -453,13 +456,15 @@ class _FakeUzawa:
         self.converged = 0.0
         self.max_change = 3.0  # largest multiplier change Newton 'follows'
         self.resolves: list[tuple[float, bool]] = []
+        self.tangential: list[bool] = []  # each update's tangential argument
 
-    def _augment(self, final):
+    def _augment(self, final, *, tangential=True):
         lam = self.contact.lambda_n.x.array
         pen = abs(10.0 - lam[0]) / 100.0  # mm
         self.contact.last_penetration_mm = pen
         if pen <= self.contact.penetration_tol_mm:
             return True, pen
+        self.tangential.append(tangential)
         lam[0] = 10.0
         return False, pen
 
@@ -473,10 +478,10 @@ class _FakeUzawa:
             undo()
         return ok
 
-    def _relax_multipliers(self, relax, start, new):
+    def _relax_multipliers(self, relax, start, new, *, normal=True):
         from handfe.grasp.scene import GraspFE
 
-        return GraspFE._relax_multipliers(self, relax, start, new)
+        return GraspFE._relax_multipliers(self, relax, start, new, normal=normal)
 
     def _contact_data(self):
         from handfe.grasp.scene import GraspFE
@@ -610,6 +615,38 @@ def test_converged_uzawa_update_applies_the_return_mapping_first():
     fake.max_change = 20.0  # a full update converges: the full mapping with it
     GraspFE.augment(fake)
     assert np.all(fake.contact.lambda_t.x.array == 1.0)
+    assert fake.tangential == [True]  # uzawa_tangential_relax = 1: lambda_t <- t_T on top
+
+
+def test_uzawa_tangential_relax_takes_a_share_of_the_mapping_and_the_full_normal_update():
+    """``solver.uzawa_tangential_relax`` < 1: the due return mapping is the update's tangential
+    step (no second lambda_t <- t_T), and the stick data take that share of its change while
+    the normal multiplier takes the whole update (the reduced cylinder's first re-solve after
+    each closing step: 11-33 Newton iterations at 1, 3-12 at 0.5; docs/grasp.md)."""
+    from types import SimpleNamespace
+
+    from handfe.grasp.config import SolverSpec
+    from handfe.grasp.scene import GraspFE
+
+    fake = _with_stick_history(_FakeUzawa())
+    fake.wf = SimpleNamespace(solver=SolverSpec(max_augment=12, uzawa_tangential_relax=0.5))
+    c = fake.contact
+    c.u_ref = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
+    apply = c.apply_history
+
+    def apply_history():  # the mapping: lambda_t += 1 (above), the anchors += 2
+        if c.history_due:
+            c.u_ref.x.array[:] += 2.0
+        apply()
+
+    c.apply_history = apply_history
+    fake.max_change = 20.0  # Newton follows the full normal update
+    GraspFE.augment(fake)
+    assert fake.tangential == [False]  # one update, no lambda_t <- t_T after the mapping
+    assert fake.resolves == [(pytest.approx(10.0), True)]
+    assert c.lambda_n.x.array[0] == 10.0
+    assert np.all(c.lambda_t.x.array == 0.5) and np.all(c.u_ref.x.array == 1.0)
+    assert not c.history_due
 
 
 class _FakeMuscles:

@@ -211,6 +211,14 @@ class SolverSpec:
     # line search of the re-solves after a change of the contact data (Uzawa update, penalty
     # increase) from a converged state; "basic" falls back to "bt" from that state
     resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
+    # augmented friction: the share of the stick data's change (tangential multipliers and
+    # anchors) a full Uzawa update takes. Below 1 the due friction return mapping (itself
+    # lambda_t <- t_T) is the update's tangential step, not followed by a second
+    # lambda_t <- t_T, and the change is under-relaxed; the normal update stays full. 1 = the
+    # full change, mapping and second update both (as before 6 Dec 2026). On the reduced
+    # cylinder the first update after a closing step crawled (11-33 Newton iterations) at 1,
+    # 3-12 at 0.5 (docs/grasp.md, thirty-third session)
+    uzawa_tangential_relax: float = field(default=1.0, metadata=bounds(0.05, 1.0))
     nu: float = field(default=0.49, metadata=bounds(0.3, 0.49999))
     # shear modulus in the p1-p1s stabilisation beta h^2 / (2 mu) |grad p|^2: "tangent" = each
     # cell's incremental modulus at the last converged state (lagged); "initial" = the

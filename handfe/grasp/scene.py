@@ -1065,13 +1065,17 @@ class GraspFE:
             if stop is not None and stop():
                 return
             balanced = self._contact_data()  # what the state balances: restored on failure
+            mapped = c.history_due
             self.contact.apply_history()
             # an under-relaxed update starts from the stick data before the due return mapping
             # (itself a full tangential update): relaxing the Uzawa change alone left the
             # mapping at full strength in every halved re-solve
             start = (c.lambda_n.x.array.copy(), balanced["lambda_t"], balanced["u_ref"])
             k = float(c.k_n.value)
-            done, pen = c.augment(True)  # changes the multipliers (and k_n), not the state
+            # changes the multipliers (and k_n), not the state; with uzawa_tangential_relax < 1
+            # a mapping just made is the update's tangential step
+            t_relax = self.wf.solver.uzawa_tangential_relax
+            done, pen = c.augment(True, tangential=not (mapped and t_relax < 1.0))
             if done:
                 self._set_contact_data(balanced)
                 return
@@ -1098,6 +1102,11 @@ class GraspFE:
             if relax < 1.0:
                 self._relax_multipliers(relax, start, new)
                 c.set_penalty(k)
+            elif t_relax < 1.0 and c.lambda_t is not None:
+                # the stick data's change crawled at full strength (docs/grasp.md, thirty-third
+                # session); the normal update and the penalty stay full
+                self._relax_multipliers(t_relax, start, new, normal=False)
+                what += f", tangential x{t_relax:.3g}"
             ok = self._resolve(what if relax == 1.0 else f"{what} x{relax:.3g}", undo)
             while not ok and relax > 0.3 * cap:
                 # under-relaxed update from the restored state: half the multiplier change,
@@ -1110,12 +1119,16 @@ class GraspFE:
                 return
             relax0 *= relax / first  # what the failures needed; the depth cap is per update
 
-    def _relax_multipliers(self, relax: float, start: tuple, new: tuple) -> None:
+    def _relax_multipliers(self, relax: float, start: tuple, new: tuple, *,
+                           normal: bool = True) -> None:
         """(lambda_n, lambda_t, u_ref) = start + ``relax`` x (new - start); None entries (no
-        friction, no augmented friction) are left alone. Between the anchors and multipliers
-        before and after a return mapping, a slipping node's traction stays on the cone."""
+        friction, no augmented friction) are left alone, and lambda_n if not ``normal``.
+        Between the anchors and multipliers before and after a return mapping, a slipping
+        node's traction stays on the cone."""
         c = self.contact
         for name, a, b in zip(("lambda_n", "lambda_t", "u_ref"), start, new, strict=True):
+            if name == "lambda_n" and not normal:
+                continue
             f = getattr(c, name)
             if f is not None and a is not None and b is not None:
                 f.x.array[:] = a + relax * (b - a)
