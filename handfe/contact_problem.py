@@ -262,10 +262,9 @@ class RigidContact:
         made and the solver re-solves. ``tangential=False`` leaves lambda_t as it is: right
         after a return mapping of this state (:meth:`on_step`, itself lambda_t <- t_T) a
         second lambda_t <- t_T would give each stuck node its stick correction twice. Penalty
-        growth: with ``adaptive_penalty`` see the class
-        docstring; otherwise (the standard safeguard) k_n is doubled when the penetration fell
-        by less than half since the last update, up to ``max_penalty_growth`` x its start
-        value."""
+        growth: with ``adaptive_penalty`` see the class docstring; otherwise (the standard
+        safeguard) k_n is doubled when the penetration fell by less than half since the last
+        update, up to ``max_penalty_growth`` x its start value."""
         if self.uzawa is None:
             return True, 0.0
         pen = self.uzawa.penetration()

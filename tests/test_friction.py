@@ -220,6 +220,37 @@ def test_reported_stuck_state_balances_its_friction_data():
     assert abs(_contact_force(sc)[0] - Ft[0]) > 1e-3 * abs(Ft[0])
 
 
+def test_an_update_right_after_the_return_mapping_can_leave_lambda_t_to_it():
+    """The return mapping (on_step) is lambda_t <- t_T of the solved state. An Uzawa update
+    right after it with ``tangential=False`` keeps that; the default would set lambda_t <- t_T
+    again, evaluated with the mapped data, which adds each stuck node's stick correction
+    k_t x slip a second time (GraspFE.augment with solver.uzawa_tangential_relax < 1)."""
+    sc = _pressed(0.74, augmented_friction=True)
+    sc.move((0.08, 0.0, -DELTA))
+    c = sc.contact
+    d = c._t_dofs
+
+    def lam_t() -> np.ndarray:
+        return c.lambda_t.x.array.reshape(-1, 3)[d].copy()
+
+    def norm(a: np.ndarray) -> float:
+        return float(np.sqrt(sc.comm.allreduce(float(np.sum(a * a)), op=MPI.SUM)))
+
+    lam0, tT = lam_t(), c._tangential()[d].copy()
+    assert c.history_due
+    c.apply_history()
+    mapped = lam_t()
+    assert norm(mapped - tT) <= 1e-12 * norm(tT)  # the mapping: lambda_t <- t_T
+    c.penetration_tol_mm = c.stick_tol_mm = 0.0  # force an update
+    done, _ = c.augment(True, tangential=False)
+    assert not done
+    assert norm(lam_t() - mapped) == 0.0
+    # what a second lambda_t <- t_T would add: the stick correction once more (measured 0.98
+    # of it: almost every node of the block sticks)
+    again = c._tangential()[d] - mapped
+    assert norm(again) > 0.5 * norm(tT - lam0) > 0.0
+
+
 @pytest.mark.xfail(strict=True, reason=(
     "measured 0.886 mu N (1.593 N for mu N = 1.798 N), the same shortfall as the penalty law: "
     "the nodal multiplier does not fix the quadrature-point stick/slip mix at the patch"))
