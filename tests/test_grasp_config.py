@@ -543,17 +543,22 @@ def test_uzawa_depth_cap_under_relaxes_deep_updates_only():
     assert fake.resolves[0] == (pytest.approx(10.0), False)
 
 
-def _with_stick_history(fake):
-    """The fake with stick multipliers and a due return mapping that changes them (as
-    RigidContact.on_step does after an accepted step, before any re-solve)."""
+def _with_stick_history(fake, anchors: bool = False):
+    """The fake with stick multipliers and a due return mapping that changes them (+1; as
+    RigidContact.on_step does after an accepted step, before any re-solve); with ``anchors``
+    also stick anchors, which the mapping moves by +2 (those of slipping nodes)."""
     from types import SimpleNamespace
 
     c = fake.contact
     c.lambda_t = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
+    if anchors:
+        c.u_ref = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
 
     def apply_history():
         if c.history_due:
             c.lambda_t.x.array[:] += 1.0
+            if anchors:
+                c.u_ref.x.array[:] += 2.0
             c.history_due = False
 
     c.apply_history = apply_history
@@ -589,21 +594,11 @@ def test_uzawa_phase_with_nothing_to_do_leaves_the_return_mapping_due():
 
 
 def test_converged_uzawa_update_applies_the_return_mapping_first():
-    from types import SimpleNamespace
 
     from handfe.grasp.scene import GraspFE
 
-    fake = _with_stick_history(_FakeUzawa())
+    fake = _with_stick_history(_FakeUzawa(), anchors=True)
     c = fake.contact
-    c.u_ref = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
-    apply = c.apply_history
-
-    def apply_history():  # the mapping also moves the anchors of slipping nodes
-        if c.history_due:
-            c.u_ref.x.array[:] += 2.0
-        apply()
-
-    c.apply_history = apply_history
     GraspFE.augment(fake)
     assert fake.resolves[-1][1] and not fake.contact.history_due
     # the first update converged at x0.25 (above): of the mapping's change too, not of the
@@ -628,18 +623,9 @@ def test_uzawa_tangential_relax_takes_a_share_of_the_mapping_and_the_full_normal
     from handfe.grasp.config import SolverSpec
     from handfe.grasp.scene import GraspFE
 
-    fake = _with_stick_history(_FakeUzawa())
+    fake = _with_stick_history(_FakeUzawa(), anchors=True)  # mapping: lambda_t +1, anchors +2
     fake.wf = SimpleNamespace(solver=SolverSpec(max_augment=12, uzawa_tangential_relax=0.5))
     c = fake.contact
-    c.u_ref = SimpleNamespace(x=SimpleNamespace(array=np.zeros(3)))
-    apply = c.apply_history
-
-    def apply_history():  # the mapping: lambda_t += 1 (above), the anchors += 2
-        if c.history_due:
-            c.u_ref.x.array[:] += 2.0
-        apply()
-
-    c.apply_history = apply_history
     fake.max_change = 20.0  # Newton follows the full normal update
     GraspFE.augment(fake)
     assert fake.tangential == [False]  # one update, no lambda_t <- t_T after the mapping
