@@ -49,7 +49,9 @@ Writes into --out (rank 0):
   fingertips.csv  mean and peak contact pressure, contact and loaded area on the five pads
   summary.json    grip force, equilibrium vs measured angles, torque residuals, max penetration,
                   dofs, load steps, Newton iterations, wall time per stage, what was skipped,
-                  peak memory (the largest rank's peak resident set, GB)
+                  peak memory (the largest rank's peak resident set, GB); the object is held
+                  in space, and net_object_force_N is what its support takes (the digits'
+                  forces do not balance each other: 5-21 N at 5 N per digit, README)
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)

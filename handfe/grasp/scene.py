@@ -419,7 +419,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
             return GraspResult(regs, summary, out, tips)
         checkpoint("done")
         say(f"done in {summary['wall_s']:.1f} s: grip force {summary['grip_force_N']:.1f} N, "
-            f"max penetration {summary['max_penetration_mm']:.4f} mm")
+            f"max penetration {summary['max_penetration_mm']:.4f} mm; the object's support "
+            f"takes {summary['net_object_force_N']:.1f} N (the object is held in space)")
         if summary["max_penetration_mm"] > wf.solver.penetration_tol_mm:
             say(f"WARNING: the contact ends {summary['max_penetration_mm']:.3g} mm deep, above "
                 f"its {wf.solver.penetration_tol_mm:g} mm target: contact areas and pressures "
@@ -474,8 +475,9 @@ def _write_outputs(scene: GraspFE, summary: dict[str, Any], out: Path | None, wf
     regs, fd = scene.metrics()
     summary.update(scene.report())
     total_f = np.sum([regs[r]["force_vector_N"] for r in REGIONS], axis=0)
-    # net force on the object (|sum|; ~0 for a balanced pinch) and the grip force = sum of
-    # the regions' contact force magnitudes
+    # net force on the object (|sum|: what the held object's support takes; 0 only if the
+    # digits' forces balance each other, 5-21 N at 5 N per digit, docs/grasp.md) and the grip
+    # force = sum of the regions' contact force magnitudes
     summary["net_object_force_N"] = float(np.linalg.norm(total_f))
     summary["grip_force_N"] = float(sum(regs[r]["normal_force_N"] for r in REGIONS))
     summary["contact_force_vector_N"] = total_f.tolist()
