@@ -350,6 +350,7 @@ def test_grasp_runner_plumbing(tmp_path, monkeypatch):
              loading=None, progress=True):
         calls.append(dict(wf=wf, mesh=mesh, materials=materials, muscle_scale=muscle_scale,
                           loading=loading))
+        progress("mesh (coarse): 1 tets")  # the case's progress goes to its log file
         f = (muscle_scale or {}).get("FDP", 1.0)
         regions = {r: {"contact_area_mm2": 50.0 * f, "mean_pressure_kPa": 30.0,
                        "peak_pressure_kPa": 90.0, "normal_force_N": 1.5 * f,
@@ -374,3 +375,7 @@ def test_grasp_runner_plumbing(tmp_path, monkeypatch):
     rows = list(csv.DictReader((tmp_path / "table_FDP.csv").open()))
     r = next(x for x in rows if x["metric"] == "normal_force_N" and x["region"] == "index")
     assert float(r["+10% change"]) == pytest.approx(10.0, rel=1e-4)
+    # each case's progress lines in OUT/cases/<case-id>.log, with the case's elapsed time
+    for cid in ("baseline", "FDP_p10", "skin_p10"):
+        text = (tmp_path / "cases" / f"{cid}.log").read_text()
+        assert text.endswith("s] mesh (coarse): 1 tets\n") and text.startswith("["), text

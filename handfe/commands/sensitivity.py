@@ -16,9 +16,10 @@ for fingertip studies.
 
 Cases run concurrently: the MPI ranks are split into groups of --ranks-per-case ranks, one case
 per group. Each finished case is written at once to OUT/cases/<case-id>.json (metrics, refit,
-wall time, error if it failed); re-running skips finished cases (unless --force), so an
-interrupted study is resumed by running the same command again. Failed cases are recorded and
-retried on the next run; the others go on.
+wall time, error if it failed); a grasp case's progress lines go to OUT/cases/<case-id>.log
+while it runs. Re-running skips finished cases (unless --force), so an interrupted study is
+resumed by running the same command again. Failed cases are recorded and retried on the next
+run; the others go on.
 
 Writes into OUT (built from the case files only):
   table_<parameter>.csv   rows = metric x region; columns baseline, then per level the value and
@@ -33,8 +34,8 @@ Units: areas mm^2, pressures kPa, forces N, deflection mm, levels and changes in
 
 Examples:
   handfe sensitivity sensitivity/fingertip_small.toml --out results/sensitivity/fingertip_small
-  mpirun -n 2 handfe sensitivity sensitivity/cylindrical.toml --mesh reduced \\
-      --out results/sensitivity/cylindrical
+  mpirun -n 2 handfe sensitivity sensitivity/cylindrical_fdp.toml \\
+      --out results/sensitivity/cylindrical_fdp
 """
 
 

@@ -30,7 +30,7 @@ import sys
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -84,6 +84,9 @@ class CaseSpec:
     load_scale: float = 1.0
     refit: dict[str, Any] | None = None
     problem: str = ""
+    #: the case's progress log (``OUT/cases/<case-id>.log``), written by a runner that has
+    #: progress lines (the grasp's: a case runs for minutes); None = no log
+    log_path: str | None = None
 
 
 def baseline_materials(study: Study) -> dict[str, Ogden]:
@@ -167,6 +170,21 @@ def run_fingertip_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
                      "load_steps": res.load_steps, "mesh": res.mesh}}
 
 
+def _case_log(path: str | None, comm) -> Callable[[str], None] | bool:
+    """The progress callback of a case: each line, with the seconds since the case started, is
+    appended to ``path`` by the case's rank 0 (``tail -f`` it); False without a path."""
+    if path is None:
+        return False
+    t0 = time.perf_counter()
+
+    def say(msg: str) -> None:
+        if comm.rank == 0:
+            with open(path, "a") as fh:
+                fh.write(f"[{time.perf_counter() - t0:7.1f} s] {msg}\n")
+
+    return say
+
+
 def run_grasp_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
     """A grasp workflow (handfe.grasp, imported here) with tissue laws / muscle factors."""
     from handfe.grasp import load_workflow, run_workflow
@@ -178,7 +196,7 @@ def run_grasp_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
             for k, m in spec.materials.items()}
     res = run_workflow(wf, mesh=study.mesh, out_dir=None, comm=comm, materials=mats,
                        muscle_scale=spec.muscle_scale or None, loading=study.loading,
-                       progress=False)
+                       progress=_case_log(spec.log_path, comm))
     regions = {str(r): {str(k): float(v) for k, v in m.items()
                         if isinstance(v, int | float) and not isinstance(v, bool)}
                for r, m in res.regions.items()}
@@ -217,9 +235,11 @@ def _materials_dict(mats: dict[str, Ogden]) -> dict[str, Any]:
             for k, m in mats.items()}
 
 
-def execute_case(study: Study, case: Case, comm, *, runner=None) -> dict[str, Any]:
+def execute_case(study: Study, case: Case, comm, *, runner=None,
+                 log_path: Path | None = None) -> dict[str, Any]:
     """Run one case on ``comm`` (collective) and return its record (JSON-able). Exceptions of
-    the runner are caught and recorded; the record is meaningful on every rank."""
+    the runner are caught and recorded; the record is meaningful on every rank. ``log_path``:
+    the runner's progress lines go there (started afresh)."""
     t0 = time.perf_counter()
     rec: dict[str, Any] = {"schema": SCHEMA, "study": study.name, "kind": study.kind,
                            "case_id": case.id, "parameter": case.parameter,
@@ -231,6 +251,10 @@ def execute_case(study: Study, case: Case, comm, *, runner=None) -> dict[str, An
         spec = comm.bcast(make_spec(study, case) if comm.rank == 0 else None, root=0)
     except Exception as exc:  # noqa: BLE001 - recorded, the study goes on
         err = exc
+    if spec is not None and log_path is not None:
+        if comm.rank == 0:
+            Path(log_path).write_text("")
+        spec = replace(spec, log_path=str(log_path))
     if spec is not None:
         rec.update(inputs={"materials": _materials_dict(spec.materials),
                            "muscle_scale": spec.muscle_scale, "load_scale": spec.load_scale},
@@ -336,7 +360,8 @@ def run_study(study: Study, out_dir: Path | str, *, comm=None, ranks_per_case: i
 
     try:
         for cid in mine:
-            rec = execute_case(study, by_id[cid], gcomm, runner=runner)
+            rec = execute_case(study, by_id[cid], gcomm, runner=runner,
+                               log_path=case_path(out_dir, cid).with_suffix(".log"))
             if gcomm.rank == 0:
                 from handfe.io import write_json
 
