@@ -5,7 +5,7 @@ Public API::
 
     from handfe.sensitivity import load_study, run_study, build_tables, refit_scaled
     study = load_study("sensitivity/cylindrical.toml")        # ConfigError on bad files
-    run = run_study(study.with_mesh("reduced"), "results/sensitivity/cylindrical",
+    run = run_study(study.with_mesh("coarse"), "results/sensitivity/cylindrical",
                     ranks_per_case=1, force=False)            # collective on COMM_WORLD
     r = refit_scaled(Ogden.skin(), 0.10, tissue="skin")       # N = 3 Ogden refit of P x 1.1
 
