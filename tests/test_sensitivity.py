@@ -89,16 +89,15 @@ def test_shipped_fingertip_study_loads():
     assert [c.id for c in study_cases(st)][:3] == ["baseline", "skin_m20", "skin_m10"]
 
 
-@pytest.mark.parametrize("name", ["cylindrical", "precision_small"])
+@pytest.mark.parametrize("name", ["cylindrical", "precision_small", "cylindrical_fdp"])
 def test_shipped_grasp_studies(name):
-    """Load if the workflow exists (issue 6), else fail naming the 'workflow' key."""
-    path = REPO / "sensitivity" / f"{name}.toml"
-    try:
-        st = load_study(path)
-    except ConfigError as exc:
-        assert "'workflow'" in str(exc) and "not found" in str(exc)
-        return
-    assert st.kind == "grasp" and "skin" in st.parameters
+    """The shipped grasp studies load; the muscle-force ones run the muscle-driven recipe."""
+    st = load_study(REPO / "sensitivity" / f"{name}.toml")
+    assert st.kind == "grasp"
+    muscles = [p for p in st.parameters if p not in ("skin", "subcutaneous")]
+    if muscles:
+        assert st.baseline_loading() == "muscles", name
+        assert st.workflow_path().name == "cylindrical_muscles.toml", name
 
 
 def test_muscle_parameters_need_muscle_loading():
