@@ -34,14 +34,15 @@ from handfe.paths import REPO_ROOT
 
 
 @pytest.mark.parametrize("name", ["cylindrical", "spherical", "precision",
-                                  "cylindrical_muscles"])
+                                  "cylindrical_muscles", "cylindrical_muscles_free"])
 def test_shipped_workflows_load(name):
     wf = load_workflow(REPO_ROOT / "workflows" / f"{name}.toml")
     g = wf.grasp_spec()
-    assert g.name == name.removesuffix("_muscles") and 0.0 < g.friction < 1.0
+    assert g.name == name.split("_")[0] and 0.0 < g.friction < 1.0
     assert wf.subject_dir().name == "S01"
-    if name.endswith("_muscles"):  # the recipe of the measured muscle-driven runs
+    if "_muscles" in name:  # the recipe of the measured muscle-driven runs
         assert wf.loading == "muscles" and wf.solver.muscle_friction_history == "load"
+        assert wf.solver.free_object == name.endswith("_free")
 
 
 def _write(tmp_path: Path, text: str, name: str = "wf.toml") -> Path:

@@ -51,7 +51,8 @@ Writes into --out (rank 0):
                   dofs, load steps, Newton iterations, wall time per stage, what was skipped,
                   peak memory (the largest rank's peak resident set, GB); the object is held
                   in space, and net_object_force_N is what its support takes (the digits'
-                  forces do not balance each other: 5-21 N at 5 N per digit, README)
+                  forces do not balance each other: 5-21 N at 5 N per digit, README); with
+                  solver.free_object (muscles mode) it is ~0 and the object moves
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)

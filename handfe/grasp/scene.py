@@ -418,9 +418,12 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
                 "the written results are not a converged solution")
             return GraspResult(regs, summary, out, tips)
         checkpoint("done")
+        free = summary.get("object_motion", {}).get("free", False)
         say(f"done in {summary['wall_s']:.1f} s: grip force {summary['grip_force_N']:.1f} N, "
-            f"max penetration {summary['max_penetration_mm']:.4f} mm; the object's support "
-            f"takes {summary['net_object_force_N']:.1f} N (the object is held in space)")
+            f"max penetration {summary['max_penetration_mm']:.4f} mm; " + (
+                f"net force on the free object {summary['net_object_force_N']:.2g} N" if free
+                else f"the object's support takes {summary['net_object_force_N']:.1f} N (the "
+                "object is held in space)"))
         if summary["max_penetration_mm"] > wf.solver.penetration_tol_mm:
             say(f"WARNING: the contact ends {summary['max_penetration_mm']:.3g} mm deep, above "
                 f"its {wf.solver.penetration_tol_mm:g} mm target: contact areas and pressures "
