@@ -171,11 +171,14 @@ def run_fingertip_case(study: Study, spec: CaseSpec, comm) -> dict[str, Any]:
 
 
 def _case_log(path: str | None, comm) -> Callable[[str], None] | bool:
-    """The progress callback of a case: each line, with the seconds since the case started, is
-    appended to ``path`` by the case's rank 0 (``tail -f`` it); False without a path."""
+    """The progress callback of a case: the file ``path`` is started afresh, then each line,
+    with the seconds since the case started, is appended by the case's rank 0 (``tail -f``
+    it); False without a path."""
     if path is None:
         return False
     t0 = time.perf_counter()
+    if comm.rank == 0:
+        Path(path).write_text("")
 
     def say(msg: str) -> None:
         if comm.rank == 0:
@@ -239,7 +242,7 @@ def execute_case(study: Study, case: Case, comm, *, runner=None,
                  log_path: Path | None = None) -> dict[str, Any]:
     """Run one case on ``comm`` (collective) and return its record (JSON-able). Exceptions of
     the runner are caught and recorded; the record is meaningful on every rank. ``log_path``:
-    the runner's progress lines go there (started afresh)."""
+    where a runner with progress lines (the grasp's) writes them."""
     t0 = time.perf_counter()
     rec: dict[str, Any] = {"schema": SCHEMA, "study": study.name, "kind": study.kind,
                            "case_id": case.id, "parameter": case.parameter,
@@ -252,8 +255,6 @@ def execute_case(study: Study, case: Case, comm, *, runner=None,
     except Exception as exc:  # noqa: BLE001 - recorded, the study goes on
         err = exc
     if spec is not None and log_path is not None:
-        if comm.rank == 0:
-            Path(log_path).write_text("")
         spec = replace(spec, log_path=str(log_path))
     if spec is not None:
         rec.update(inputs={"materials": _materials_dict(spec.materials),
