@@ -99,6 +99,43 @@ def test_mean_pressure_ignores_a_dust_of_tiny_nodal_forces():
     assert r["normal_force_N"] == pytest.approx(2.0, rel=1e-6)
 
 
+def _nodal_fd(p_MPa: np.ndarray, a_share: np.ndarray, codes: np.ndarray) -> dict:
+    """Facet data of flat facets (normal -z) pressed with nodal pressures ``p_MPa`` (nf, 3)
+    over the tributary shares ``a_share`` (nf, 3, mm2), none within gap_tol by its gap."""
+    nf = len(codes)
+    n = np.tile([0.0, 0.0, -1.0], (nf, 3, 1))
+    return {"codes": codes, "p": p_MPa, "t": np.zeros((nf, 3, 3)), "n": n,
+            "area_c": np.zeros(nf), "area": 3.0 * a_share.mean(axis=1),
+            "f": p_MPa[..., None] * a_share[..., None] * -n, "p_node": p_MPa,
+            "a_share": a_share}
+
+
+def test_contact_area_holds_the_loaded_area_under_a_high_peak():
+    """With a 2 MPa peak elsewhere on the skin, 1 % of the peak is 20 kPa: a pad pressed with
+    15 kPa is still in contact, as it is loaded (>= 10 kPa). Before, the muscle-driven thumb
+    was 'loaded' over 194 mm2 and 'in contact' over 157 mm2 (peak 1.3 MPa)."""
+    p = np.array([[2.0, 2.0, 2.0], [0.015, 0.015, 0.015], [0.005, 0.005, 0.005]])
+    codes = np.array([MIDDLE_DISTAL, INDEX_DISTAL, INDEX_DISTAL])
+    r = region_metrics(_nodal_fd(p, np.ones((3, 3)), codes), MPI.COMM_SELF)["index"]
+    assert r["loaded_area_mm2"] == pytest.approx(3.0)
+    assert r["contact_area_mm2"] == pytest.approx(3.0)  # the 5 kPa facet is below both
+    assert r["mean_pressure_kPa"] == pytest.approx(15.0)
+
+
+@pytest.mark.parametrize("threshold_kPa", [1.0, 10.0, 100.0])
+def test_loaded_area_never_exceeds_the_contact_area(threshold_kPa):
+    """Random nodal pressures (0-2 MPa, many near 0) and tributary shares over facets of two
+    digits and their segments: every region's loaded area is <= its contact area."""
+    rng = np.random.default_rng(7)
+    nf = 400
+    p = rng.uniform(0.0, 2.0, (nf, 3)) * (rng.uniform(size=(nf, 3)) < 0.3)
+    codes = rng.choice([INDEX_DISTAL, INDEX_DISTAL - 1, MIDDLE_DISTAL], nf)
+    r = region_metrics(_nodal_fd(p, rng.uniform(0.1, 2.0, (nf, 3)), codes), MPI.COMM_SELF,
+                       loaded_area_kPa=threshold_kPa)
+    for k, v in r.items():
+        assert v["loaded_area_mm2"] <= v["contact_area_mm2"] * (1 + 1e-12), k
+
+
 def test_pressure_map_draws_loaded_facets_over_the_skin_in_front(tmp_path):
     """A loaded pad facing into the closed hand (behind unloaded skin in the palmar view) is
     still seen: its colour, not the skin's grey, fills the centre of the picture."""

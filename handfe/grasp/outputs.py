@@ -121,7 +121,7 @@ def facet_data(model, u1, p1, t1, obstacle, translation, gap_tol_mm: float, node
 
 
 #: a node counts as loaded (mean pressure, contact area) when its pressure is >= this
-#: fraction of the peak nodal pressure over the whole skin
+#: fraction of the peak nodal pressure over the whole skin, or >= the loaded area's threshold
 LOADED_FRACTION = 0.01
 
 
@@ -129,7 +129,7 @@ def region_metrics(fd: dict, comm: MPI.Comm, loaded_area_kPa: float = LOADED_ARE
                    ) -> dict[str, dict[str, float]]:
     """Metrics per region (thumb..little, palm) and per digit segment (``index_distal``...);
     ``loaded_area_mm2`` is the skin with nodal pressure >= ``loaded_area_kPa``
-    (:func:`loaded_area`)."""
+    (:func:`loaded_area`), a part of ``contact_area_mm2`` (with nodal forces, exactly)."""
     codes = fd["codes"]
     keys: dict[str, np.ndarray] = {}
     names = [region_of(c) for c in codes]
@@ -161,7 +161,11 @@ def region_metrics(fd: dict, comm: MPI.Comm, loaded_area_kPa: float = LOADED_ARE
         # 4.7 N thumb pad 'loaded' over ~200 mm2 on the coarse pinch
         gpeak = comm.allreduce(float(fd["p_node"].max(initial=0.0)) if len(codes) else 0.0,
                                op=MPI.MAX)
-        loaded = fd["p_node"] >= max(LOADED_FRACTION * gpeak, 1e-300) if len(codes) \
+        # ... and every node of the loaded area (>= loaded_area_kPa): with a 1.3 MPa peak the
+        # fraction's 13 kPa made the muscle-driven thumb's contact area 157 mm2 and its
+        # loaded area (10 kPa) 194 mm2; the contact area holds the loaded area by definition
+        loaded = ((fd["p_node"] >= max(LOADED_FRACTION * gpeak, 1e-300))
+                  | (1e3 * fd["p_node"] >= loaded_area_kPa)) if len(codes) \
             else np.zeros((0, 3), dtype=bool)
         # a flat facet on a curved object touches with its interior (Gauss points) while its
         # vertices stay > gap_tol away (sagitta a^2 / 8R ~ 0.06 mm on the coarse pinch): the
@@ -170,7 +174,13 @@ def region_metrics(fd: dict, comm: MPI.Comm, loaded_area_kPa: float = LOADED_ARE
         # (this replaces the positive-vertex-pressure share above, which counts the dust)
         if len(codes):
             area_c = np.maximum(fd["area_c"], (fd["a_share"] * loaded).sum(axis=1))
-    area_l = loaded_area(fd["area"], 1e3 * (fd["p_node"] if nodal else fd["p"]), loaded_area_kPa)
+    if nodal and len(codes):
+        # the loaded nodes' tributary shares, as the contact area counts them (a region's
+        # border node splits its area equally among its facets), so loaded <= contact exactly
+        area_l = (fd["a_share"] * (1e3 * fd["p_node"] >= loaded_area_kPa)).sum(axis=1)
+    else:
+        area_l = loaded_area(fd["area"], 1e3 * (fd["p_node"] if nodal else fd["p"]),
+                             loaded_area_kPa)
     out = {}
     for k, m in keys.items():
         area = comm.allreduce(float(area_c[m].sum()), op=MPI.SUM)
