@@ -544,6 +544,77 @@ def test_uzawa_depth_cap_under_relaxes_deep_updates_only():
     assert fake.resolves[0] == (pytest.approx(10.0), False)
 
 
+class _FakeNode(_FakeUzawa):
+    """One contact node in the Uzawa phase with the pressure-following penalty: an update is
+    lambda += k pen (MPa), and each re-solve sets the node's penetration (mm) by
+    ``response(lambda, k)``; Newton always converges."""
+
+    def __init__(self, response, k0: float):
+        super().__init__()
+        self.response = response
+        self.pen = response(0.0, k0)  # the state solved with lambda = 0
+        c = self.contact
+        c.adaptive_penalty = 10.0
+        c.k_n.value = k0
+        c.augment = self._node_augment
+        self.wf.solver = type(self.wf.solver)(max_augment=14)
+        self.penalties: list[float] = []
+
+    def _node_augment(self, final, *, tangential=True):
+        c = self.contact
+        c.last_penetration_mm = self.pen
+        if self.pen <= c.penetration_tol_mm:
+            return True, self.pen
+        c.lambda_n.x.array[0] += c.k_n.value * self.pen
+        return False, self.pen
+
+    def _resolve(self, what, undo):
+        self.penalties.append(float(self.contact.k_n.value))
+        self.pen = self.response(float(self.contact.lambda_n.x.array[0]),
+                                 float(self.contact.k_n.value))
+        return True
+
+
+def test_uzawa_penalty_doubling_stops_when_it_does_not_help():
+    """A vertex at the rim of a patch, 0.023 mm into the object while its facets' Gauss points
+    sit 0.08 mm off it (the matched-force cylinder's first step, docs/grasp.md, thirty-fifth
+    session): the Gauss points push only once 0.67 lambda > k x 0.08, so a doubling per update
+    keeps lambda / k bounded and the node never moves. One doubling that does not speed up the
+    fall ends the doubling; lambda then grows at a fixed k and the node comes out."""
+    from handfe.grasp.scene import GraspFE
+
+    def rim(lam, k, pen0=0.023, w=0.67, g_gauss=0.08, compliance_mm_per_MPa=100.0):
+        return max(0.0, pen0 - compliance_mm_per_MPa * max(0.0, w * lam - k * g_gauss))
+
+    fake = _FakeNode(rim, 0.0064)
+    GraspFE.augment(fake)
+    assert fake.contact.last_penetration_mm <= 0.01
+    assert max(fake.penalties) == pytest.approx(2 * 0.0064)  # one doubling, then none
+    # the former rule (double whenever the penetration falls by < 2x) stalls at 0.023 mm
+    k, lam, pen = 0.0064, 0.0, 0.023
+    for _ in range(14):
+        lam += k * pen
+        k *= 2.0
+        pen = rim(lam, k)
+    assert pen == pytest.approx(0.023)
+
+
+def test_uzawa_penalty_doubles_while_it_speeds_up_the_fall():
+    """A stiffened pad (tissue stiffness K = 40 x the penalty, linear): each update removes
+    k / (K + k) of the penetration, so every doubling speeds up the fall and is kept."""
+    from handfe.grasp.scene import GraspFE
+
+    K = 40 * 0.0064
+
+    def pad(lam, k, pen0=0.1):
+        return max(0.0, (K * pen0 - lam) / (K + k))
+
+    fake = _FakeNode(pad, 0.0064)
+    GraspFE.augment(fake)
+    assert fake.contact.last_penetration_mm <= 0.01
+    assert fake.penalties[-1] >= 8 * 0.0064
+
+
 def _with_stick_history(fake, anchors: bool = False):
     """The fake with stick multipliers and a due return mapping that changes them (+1; as
     RigidContact.on_step does after an accepted step, before any re-solve); with ``anchors``
