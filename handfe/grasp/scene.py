@@ -1062,8 +1062,8 @@ class GraspFE:
                 c.penetration_tol_mm, c.stick_tol_mm = tols
             return
         prev = last_rate = float("nan")
-        k_last = math.inf
-        grow = True  # the "< 2x fall" doubling below; off for the phase once it did not help
+        doubled = False  # the last update doubled the penalty (the "< 2x fall" rule below)
+        grow = True  # that rule; off for the rest of the phase once a doubling did not help
         # under-relaxation of the multiplier change that the last re-solve needed: later updates
         # of this phase start from it (a full update that Newton could not follow once tends to
         # fail again, each failure costing ~40 iterations; 0.25 x then converges in a few)
@@ -1089,19 +1089,20 @@ class GraspFE:
             self.augmentations += 1
             if c.adaptive_penalty is not None and math.isfinite(prev):
                 rate = pen / prev
-                if k > k_last and math.isfinite(last_rate) and not rate < last_rate:
-                    # a stiffer penalty did not speed up the fall: the deepest node is pushed
-                    # only through Gauss points off the object (a vertex at the patch's rim),
+                if doubled and not rate < last_rate:
+                    # the doubling did not speed up the fall: the deepest node is likely pushed
+                    # only through Gauss points off the object (a vertex at a patch's rim),
                     # whose pressure lambda - k g a larger k lowers; doubling on kept
                     # lambda / k bounded and stalled the matched-force cylinder at 0.023 mm
-                    # for 14 updates (docs/grasp.md, thirty-fifth session)
+                    # for 12 updates (docs/grasp.md, thirty-fifth session)
                     grow = False
-                if grow and rate > 0.5:
+                doubled = grow and rate > 0.5
+                if doubled:
                     # the pressure-following penalty is too soft for a stiffened pad (the
                     # penetration falls by < 2x per update): at least double it
                     c.set_penalty(max(float(c.k_n.value), 2.0 * k))
                 last_rate = rate
-            prev, k_last = pen, k
+            prev = pen
 
             def undo(start: tuple = start, k: float = k) -> None:
                 self._relax_multipliers(0.0, start, start)
@@ -1134,6 +1135,7 @@ class GraspFE:
             if not ok:
                 self._set_contact_data(balanced)
                 return
+            doubled = doubled and float(c.k_n.value) > k  # an under-relaxed update kept k
             relax0 *= relax / first  # what the failures needed; the depth cap is per update
 
     def _relax_multipliers(self, relax: float, start: tuple, new: tuple, *,
