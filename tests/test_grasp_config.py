@@ -577,7 +577,7 @@ class _FakeNode(_FakeUzawa):
 
 def test_uzawa_penalty_doubling_stops_when_it_does_not_help():
     """A vertex at the rim of a patch, 0.023 mm into the object while its facets' Gauss points
-    sit 0.08 mm off it (the matched-force cylinder's first step, docs/grasp.md, thirty-fifth
+    sit 0.08 mm off it (the matched-force cylinder's second step, docs/grasp.md, thirty-fifth
     session): the Gauss points push only once 0.67 lambda > k x 0.08, so a doubling per update
     keeps lambda / k bounded and the node never moves. One doubling that does not speed up the
     fall ends the doubling; lambda then grows at a fixed k and the node comes out."""
