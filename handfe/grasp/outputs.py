@@ -161,12 +161,12 @@ def region_metrics(fd: dict, comm: MPI.Comm, loaded_area_kPa: float = LOADED_ARE
         # 4.7 N thumb pad 'loaded' over ~200 mm2 on the coarse pinch
         gpeak = comm.allreduce(float(fd["p_node"].max(initial=0.0)) if len(codes) else 0.0,
                                op=MPI.MAX)
+        over_kPa = 1e3 * fd["p_node"] >= loaded_area_kPa  # the loaded area's nodes
         # ... and every node of the loaded area (>= loaded_area_kPa): with a 1.3 MPa peak the
         # fraction's 13 kPa made the muscle-driven thumb's contact area 157 mm2 and its
         # loaded area (10 kPa) 194 mm2; the contact area holds the loaded area by definition
-        loaded = ((fd["p_node"] >= max(LOADED_FRACTION * gpeak, 1e-300))
-                  | (1e3 * fd["p_node"] >= loaded_area_kPa)) if len(codes) \
-            else np.zeros((0, 3), dtype=bool)
+        loaded = ((fd["p_node"] >= max(LOADED_FRACTION * gpeak, 1e-300)) | over_kPa) \
+            if len(codes) else np.zeros((0, 3), dtype=bool)
         # a flat facet on a curved object touches with its interior (Gauss points) while its
         # vertices stay > gap_tol away (sagitta a^2 / 8R ~ 0.06 mm on the coarse pinch): the
         # gap-based area was 0 under a 4.4 N thumb. A facet's area is at least its share of
@@ -177,7 +177,7 @@ def region_metrics(fd: dict, comm: MPI.Comm, loaded_area_kPa: float = LOADED_ARE
     if nodal and len(codes):
         # the loaded nodes' tributary shares, as the contact area counts them (a region's
         # border node splits its area equally among its facets), so loaded <= contact exactly
-        area_l = (fd["a_share"] * (1e3 * fd["p_node"] >= loaded_area_kPa)).sum(axis=1)
+        area_l = (fd["a_share"] * over_kPa).sum(axis=1)
     else:
         area_l = loaded_area(fd["area"], 1e3 * (fd["p_node"] if nodal else fd["p"]),
                              loaded_area_kPa)
