@@ -65,8 +65,9 @@ class InversionGuard:
     displacement is ``split(w)[0]`` (else ``w`` itself). For P1 displacements grad u is
     constant per cell and J is checked at the centroid; for higher degrees at the vertices and
     the centroid. Owned cells only; the step scale is the minimum over ranks.
-    ``shortened`` counts the steps it scaled, ``smallest`` is the smallest scale applied and
-    ``min_J`` the smallest cell J at the iterates it scaled a step from."""
+    ``shortened`` counts the steps it scaled, ``smallest`` is the smallest scale applied,
+    ``min_J`` the smallest cell J at the iterates it scaled a step from and ``min_J_centre``
+    that cell's centre (mm, reference configuration; the same on every rank)."""
 
     def __init__(self, w: fem.Function, *, mixed: bool, keep: float = 0.1):
         if not 0.0 < keep < 1.0:
@@ -88,13 +89,14 @@ class InversionGuard:
 
         self._gx = fem.Expression(grad_u(self._wx), pts)
         self._gy = fem.Expression(grad_u(self._wy), pts)
-        mesh = V.mesh
+        mesh = self._mesh = V.mesh
         n_owned = mesh.topology.index_map(mesh.topology.dim).size_local
         self.cells = np.arange(n_owned, dtype=np.int32)
         self.shortened = 0
         self.smallest = 1.0
         #: the smallest cell J at an iterate whose step the guard shortened
         self.min_J = float("inf")
+        self.min_J_centre: np.ndarray | None = None
 
     def scale(self, x, y) -> float:
         """The admissible fraction s of the step (x_new = x - s y), same on every rank."""
@@ -115,6 +117,22 @@ class InversionGuard:
         y.scale(s)
         self.shortened += 1
         self.smallest = min(self.smallest, s)
-        J = float(np.linalg.det(self._A).min(initial=np.inf))
-        self.min_J = min(self.min_J, self.comm.allreduce(J, op=MPI.MIN))
+        self._note_smallest(np.linalg.det(self._A))
         return True
+
+    def reset(self) -> None:
+        """Forget the smallest scale and cell J (before a new solve); ``shortened`` counts on."""
+        self.smallest, self.min_J, self.min_J_centre = 1.0, float("inf"), None
+
+    def _note_smallest(self, J: np.ndarray) -> None:
+        """Keep the smallest cell J over all ranks and its cell's centre (ties, as in congruent
+        cells, go to the lexicographically smallest centre: the same on any partition)."""
+        from dolfinx.mesh import compute_midpoints
+
+        J_min = self.comm.allreduce(float(J.min(initial=np.inf)), op=MPI.MIN)
+        if not J_min < self.min_J:
+            return
+        tied = self.cells[J == J_min]
+        mine = [tuple(c) for c in compute_midpoints(self._mesh, 3, tied)] if len(tied) else []
+        centres = [c for part in self.comm.allgather(mine) for c in part]
+        self.min_J, self.min_J_centre = J_min, np.array(min(centres))

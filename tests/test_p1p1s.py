@@ -166,7 +166,7 @@ def test_smallest_tissue_cells_says_where_the_tissue_lost_volume():
 
     from handfe.contact import Sphere
     from handfe.grasp.fe import SKIN, SUBCUT, GraspProblem
-    from handfe.grasp.outputs import smallest_tissue_cells
+    from handfe.grasp.outputs import describe_cell, smallest_tissue_cells
     from handfe.materials import Ogden
 
     comm = MPI.COMM_WORLD
@@ -205,6 +205,8 @@ def test_smallest_tissue_cells_says_where_the_tissue_lost_volume():
         assert c["nearest_skin"] == "index/distal"
         dist = np.linalg.norm(fmid - allmid[i], axis=1).min()
         assert c["skin_distance_mm"] == pytest.approx(dist, abs=1e-3)
+        # the words of a failed solve's note (the inversion guard's smallest cell)
+        assert describe_cell(model, allmid[i]) == f"{dist:.1f} mm under the index/distal skin"
         gap = np.linalg.norm(allmoved[i] - np.array([2.0, 2.0, 10.0])) - 7.5
         assert c["object_distance_mm"] == pytest.approx(gap, abs=1e-3)
     # this field's answer on 1 rank (printed by this test's code, 5 Dec 2026); the 2-rank

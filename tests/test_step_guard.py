@@ -64,5 +64,27 @@ def test_a_failed_solve_says_when_the_guard_kept_its_steps_short():
     assert not ok
     assert reason.startswith("-5; inversion guard shortened ")  # DIVERGED_MAX_IT
     assert "of 2 steps" in reason and "smallest cell J " in reason
+    # ... and where that cell is: its centre, the same on every rank, inside the block
+    c = solver.guard.min_J_centre
+    assert c is not None and reason.endswith(" at ({:.1f}, {:.1f}, {:.1f}) mm".format(*c))
+    assert np.all(c > 0.0) and np.all(c < [10.0, 6.0, 4.0])
+    assert all(np.array_equal(c, o) for o in MPI.COMM_WORLD.allgather(c))
     ok, reason, _, _ = _turn([0.8, -1.2], "bt", 0.1)  # converged: the plain reason
     assert ok and "guard" not in reason
+
+
+@pytest.mark.mpi
+def test_the_guard_note_names_the_place_in_the_solver_s_words():
+    """``TwoFormNewton.locate`` (the grasp sets it to ``outputs.describe_cell``: "2.7 mm under the
+    thumb/proximal skin") replaces the coordinates, and is called on every rank."""
+    comm = MPI.COMM_WORLD
+    msh, problem, bc, ds = _block(comm)
+    k = fem.Constant(msh, 1e-3)
+    problem.add_residual(k * ufl.inner(ufl.split(problem.w)[0], problem.vu) * ds(7))
+    solver = TwoFormNewton(problem, max_it=2, guard_keep=0.1)
+    seen = []
+    solver.locate = lambda centre: seen.append(centre) or f"{centre[2]:.1f} mm above the base"
+    bc.set(_chain(np.array([0.8, -1.2]))[0])
+    ok, _, reason = solver.solve("basic")
+    assert not ok and reason.endswith(" mm above the base)") and " at (" not in reason
+    assert len(seen) == 1 and np.array_equal(seen[0], solver.guard.min_J_centre)

@@ -11,6 +11,7 @@ node R is the force the bone exerts on the tissue.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -259,6 +260,9 @@ class TwoFormNewton:
     #: after a solve whose steps the inversion guard kept short, "; inversion guard shortened
     #: ..." (a stall at a cell near its J bound, not only at a contact kink), else ""
     guard_note = ""
+    #: names where a cell centre (mm, reference) lies, for the guard's note (collective call);
+    #: None: the note gives the coordinates
+    locate: Callable[[np.ndarray], str] | None = None
 
     def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
                  max_it: int = 25, guard_keep: float = 0.0):
@@ -363,7 +367,8 @@ class TwoFormNewton:
         g = self.guard
         self.guard_note = ""
         if g is not None:
-            shortened0, g.smallest, g.min_J = g.shortened, 1.0, float("inf")
+            shortened0 = g.shortened
+            g.reset()
         try:
             snes.solve(None, self.x)
         except PETSc.Error as exc:
@@ -375,7 +380,7 @@ class TwoFormNewton:
         if g is not None and g.shortened > shortened0:
             self.guard_note = (f"; inversion guard shortened {g.shortened - shortened0} of "
                                f"{its} steps, to x{g.smallest:.2g} at least; smallest cell J "
-                               f"{g.min_J:.2g}")
+                               f"{g.min_J:.2g}{self._where(g.min_J_centre)}")
         if not ok and self.history and all(np.isfinite(self.history)) \
                 and self.history[-1] <= self.stall_atol:
             # a stall at a negligible residual (an active-set flip between two contact
@@ -387,6 +392,15 @@ class TwoFormNewton:
             p.w.x.scatter_forward()
             return ok, its, str(reason)
         return ok, its, str(reason) + self.guard_note
+
+    def _where(self, centre: np.ndarray | None) -> str:
+        """The note's " (where)" for a cell centre (mm, reference): :attr:`locate`'s words,
+        else the coordinates. Collective (every rank calls it with the same centre)."""
+        if centre is None:
+            return ""
+        if self.locate is not None:
+            return f" ({self.locate(centre)})"
+        return " at ({:.1f}, {:.1f}, {:.1f}) mm".format(*centre)
 
     def adopt_last_iterate(self) -> bool:
         """After a failed :meth:`solve`: make its last iterate the state if every residual of

@@ -313,7 +313,6 @@ def smallest_tissue_cells(problem, model, obstacle, translation, k: int = 5
     of the deformed centre to the object (mm, < 0 inside). The same list on every rank and
     for any partition."""
     from dolfinx.mesh import compute_midpoints
-    from scipy.spatial import cKDTree
 
     comm, msh = problem.comm, model.mesh
 
@@ -337,23 +336,44 @@ def smallest_tissue_cells(problem, model, obstacle, translation, k: int = 5
     Jall = Jall[keep]
     centre = np.concatenate([c[1] for c in cand])[keep]
     moved = np.concatenate([c[2] for c in cand])[keep]
-    ft = model.facet_tags
-    on = np.isin(ft.values, np.asarray(model.groups["skin_outer"]))
-    fac, fval = ft.indices[on], ft.values[on]
-    near = np.full(len(keep), np.inf)
-    code = np.zeros(len(keep), dtype=np.int64)
-    if len(fac) and len(keep):
-        near, i = cKDTree(compute_midpoints(msh, 2, fac)).query(centre)
-        code = fval[i].astype(np.int64)
-    best = comm.allgather((near, code))
+    skin = nearest_skin(model, centre)
     gap = obstacle.gap_normal(moved, np.asarray(translation, dtype=float))[0] \
         if len(keep) else np.zeros(0)
     out: list[dict[str, object]] = []
     for j in range(len(keep)):
-        dist, c = min((float(b[0][j]), int(b[1][j])) for b in best)
+        region, dist = skin[j]
         out.append({"J": float(Jall[j]), "centre_mm": [round(float(v), 3) for v in centre[j]],
-                    "nearest_skin": "/".join(region_of(c)).rstrip("/")
-                    if np.isfinite(dist) else "",
-                    "skin_distance_mm": round(dist, 3),
+                    "nearest_skin": region, "skin_distance_mm": round(dist, 3),
                     "object_distance_mm": round(float(gap[j]), 3)})
     return out
+
+
+def nearest_skin(model, points: np.ndarray) -> list[tuple[str, float]]:
+    """For each point (n, 3; mm, reference configuration): the region of the nearest outer
+    skin facet ("thumb/proximal", "palm"; "" if there is none) and its distance (mm, to the
+    facet's midpoint). Collective: every rank passes the same points and gets the same list."""
+    from dolfinx.mesh import compute_midpoints
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    ft = model.facet_tags
+    on = np.isin(ft.values, np.asarray(model.groups["skin_outer"]))
+    fac, fval = ft.indices[on], ft.values[on]
+    near = np.full(len(points), np.inf)
+    code = np.zeros(len(points), dtype=np.int64)
+    if len(fac) and len(points):
+        near, i = cKDTree(compute_midpoints(model.mesh, 2, fac)).query(points)
+        code = fval[i].astype(np.int64)
+    best = model.mesh.comm.allgather((near, code))
+    out = []
+    for j in range(len(points)):
+        dist, c = min((float(b[0][j]), int(b[1][j])) for b in best)
+        out.append(("/".join(region_of(c)).rstrip("/") if np.isfinite(dist) else "", dist))
+    return out
+
+
+def describe_cell(model, centre: np.ndarray) -> str:
+    """Where a tissue cell is, in words: "2.7 mm under the thumb/proximal skin" (its centre's
+    distance to the nearest outer skin facet). Collective, as :func:`nearest_skin`."""
+    region, dist = nearest_skin(model, centre)[0]
+    return f"{dist:.1f} mm under the {region} skin" if region else "no outer skin"

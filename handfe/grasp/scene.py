@@ -693,6 +693,7 @@ class GraspFE:
         from handfe.contact_problem import RigidContact
         from handfe.grasp.fe import BoneBC, GraspProblem, TwoFormNewton
         from handfe.grasp.mechanics import Kinematics, Ligaments, muscle_torques, released_joints
+        from handfe.grasp.outputs import describe_cell
 
         self.model, self.grasp, self.wf, self.say = model, grasp, wf, say
         self.obstacle = obstacle
@@ -721,6 +722,9 @@ class GraspFE:
         # iterations before a cut wastes less than restarting a halved step
         self.solver = TwoFormNewton(self.problem, max_it=40,
                                     guard_keep=s.inversion_guard)
+        # a failed solve's note says where its smallest cell was ("2.7 mm under the
+        # thumb/proximal skin"), not only its J
+        self.solver.locate = lambda centre: describe_cell(model, centre)
         # Newton on the contact kinks can cycle between two active sets at a residual of
         # 1e-5 N (whole-hand cylinder, 1 Dec 2026): below 1e-4 N (out of balance force, N;
         # 2e-5 of a 5 N digit force) that state is accepted, counted in the summary
