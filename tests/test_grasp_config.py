@@ -1502,3 +1502,18 @@ def test_balance_problems_name_what_is_off():
     assert "object force vs support reactions 6.1e-05" in msg
     assert len(balance_problems({"equilibrium_relative_error": float("nan")}, "angles",
                                 1e-3)) == 1
+
+
+def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh():
+    """A muscle-driven run other than the coarse cylinder starts with a note of what that
+    combination has shown (docs/grasp.md), so that a user does not wait 40 minutes for a known
+    failure; the angles mode and the coarse cylinder get none."""
+    from handfe.grasp.scene import muscles_mode_caveat
+
+    assert muscles_mode_caveat("angles", "spherical", "reduced") == ""
+    assert muscles_mode_caveat("muscles", "cylindrical", "coarse") == ""
+    reduced = muscles_mode_caveat("muscles", "cylindrical", "reduced")
+    assert "only on the cylinder at mesh 'coarse'" in reduced
+    assert "failed the first quarter of the load" in reduced and "partial" in reduced
+    assert "53 %" in muscles_mode_caveat("muscles", "precision", "coarse")
+    assert "has not been run" in muscles_mode_caveat("muscles", "precision", "default")
