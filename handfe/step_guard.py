@@ -97,6 +97,7 @@ class InversionGuard:
         #: the smallest cell J at an iterate whose step the guard shortened
         self.min_J = float("inf")
         self.min_J_centre: np.ndarray | None = None
+        self.last_scale = 1.0  # the scale of the last step checked
 
     def scale(self, x, y) -> float:
         """The admissible fraction s of the step (x_new = x - s y), same on every rank."""
@@ -111,7 +112,7 @@ class InversionGuard:
         return self.comm.allreduce(s, op=MPI.MIN)
 
     def __call__(self, x, y) -> bool:
-        s = self.scale(x, y)
+        s = self.last_scale = self.scale(x, y)
         if s >= 1.0:
             return False
         y.scale(s)

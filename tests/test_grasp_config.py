@@ -66,6 +66,15 @@ def test_bad_values(tmp_path):
         load_workflow(p)
 
 
+def test_guard_damping_needs_the_guard(tmp_path):
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nguard_damping = true\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*guard_damping.*inversion_guard"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nguard_damping = true\n'
+               'inversion_guard = 0.1\n')
+    assert load_workflow(p).solver.guard_damping
+
+
 def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nnewton_linesearch = "cp"\n')
     with pytest.raises(ConfigError, match="newton_linesearch"):

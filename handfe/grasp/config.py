@@ -208,6 +208,14 @@ class SolverSpec:
     # shortened so that no cell's J drops below inversion_guard x its value at the iterate
     # (full steps at a stiff loaded contact inverted cells: NaN residual, SNES -4). 0 = off
     inversion_guard: float = field(default=0.0, metadata=bounds(0.0, 0.9))
+    # with inversion_guard: once the guard cuts a Newton step below 0.1 of its length, the
+    # next Jacobians add lambda |K_ii| to the displacement diagonal (Levenberg-Marquardt:
+    # lambda 1e-3, x10 after each such step, /10 after a step the guard left whole, 0 below
+    # 1e-3). The residual is unchanged, so is a converged state; the damped steps avoid the
+    # near-singular modes that drive cells to collapse (reduced muscle-driven cylinder: torque
+    # iteration 3 of load 0.25 converged where it had failed through two cuts; docs/grasp.md,
+    # thirty-sixth session)
+    guard_damping: bool = False
     # line search of the re-solves after a change of the contact data (Uzawa update, penalty
     # increase) from a converged state; "basic" falls back to "bt" from that state
     resolve_linesearch: str = field(default="bt", metadata=choices("bt", "basic"))
@@ -299,6 +307,10 @@ def load_workflow(path: str | Path) -> Workflow:
     if given is not None and wf.element != "p1-p1s":
         raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")
+    if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
+        raise ConfigError(f"{p}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
+                          f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "
+                          "the guard's step cuts")
     wf.subject_dir()
     wf.grasp_spec()
     return wf

@@ -27,6 +27,9 @@ from handfe.solver import MUMPS_OPTIONS, Discretisation, lift_unless_satisfied, 
 from handfe.step_guard import InversionGuard
 
 SKIN, SUBCUT, NAIL = 1, 2, 3
+# guard_damping: a step the guard cut below DAMPING_CUT of its length raises the shift x10
+# (from DAMPING_MIN); a step it left whole lowers it /10 (to 0 below DAMPING_MIN)
+DAMPING_CUT, DAMPING_MIN = 0.1, 1e-3
 # Brezzi-Pitkaranta weight of the equal-order pressure stabilisation (element "p1-p1s"): chosen on
 # Cook's membrane (neo-Hookean, nu = 0.499, n = 2/4/8/16): beta = 0.2 gives 4.59/7.12/8.09/
 # 8.18 mm against 8.11 mm converged Taylor-Hood (0.05: 7.84 at n = 16, still locked; 1.0: 10.1,
@@ -263,6 +266,13 @@ class TwoFormNewton:
     #: names where a cell centre (mm, reference) lies, for the guard's note (collective call);
     #: None: the note gives the coordinates
     locate: Callable[[np.ndarray], str] | None = None
+    #: Levenberg-Marquardt damping driven by the guard (workflow key solver.guard_damping):
+    #: the Jacobian's displacement diagonal gets + damping_shift x |K_ii|; the shift is set
+    #: from each step's guard scale (``_precheck``) and carries over to the next solve
+    damping = False
+    damping_shift = 0.0
+    #: the largest shift used so far (summary.json)
+    damping_max = 0.0
 
     def __init__(self, problem: GraspProblem, *, rtol: float = 1e-8, atol: float = 1e-9,
                  max_it: int = 25, guard_keep: float = 0.0):
@@ -316,8 +326,21 @@ class TwoFormNewton:
             db.delValue(prefix + k)
         snes.setMonitor(lambda _s, _it, norm: self.history.append(float(norm)))
         if self.guard is not None:
-            snes.setLineSearchPreCheck(self.guard)
+            snes.setLineSearchPreCheck(self._precheck)
         return snes
+
+    def _precheck(self, x, y) -> bool:
+        """The inversion guard, then the damping's update from the scale it took."""
+        changed = self.guard(x, y)
+        if self.damping:
+            s, lm = self.guard.last_scale, self.damping_shift
+            if s < DAMPING_CUT:
+                lm = max(DAMPING_MIN, 10.0 * lm)
+            elif s >= 1.0:
+                lm = 0.1 * lm if lm > DAMPING_MIN else 0.0
+            self.damping_shift = lm
+            self.damping_max = max(self.damping_max, lm)
+        return changed
 
     def _residual(self, snes, x, b):
         p = self.problem
@@ -347,6 +370,28 @@ class TwoFormNewton:
         A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
         fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
+        if self.damping_shift > 0.0:
+            d = A.getDiagonal()
+            m = self._damped_rows()
+            d.array[m] += self.damping_shift * np.abs(d.array[m])
+            A.setDiagonal(d)
+            d.destroy()
+
+    def _damped_rows(self) -> np.ndarray:
+        """Owned displacement rows (local indices of the state vector) off the Dirichlet
+        dofs: where :attr:`damping_shift` acts."""
+        bcs = tuple(self.problem.bcs)
+        if getattr(self, "_damped", (None,))[0] != bcs:
+            W = self.problem.W
+            n = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
+            umap = np.asarray(W.sub(0).collapse()[1])
+            mask = np.zeros(n, dtype=bool)
+            mask[umap[umap < n]] = True
+            for bc in bcs:
+                idx = bc.dof_indices()[0]
+                mask[idx[idx < n]] = False
+            self._damped = (bcs, np.flatnonzero(mask))
+        return self._damped[1]
 
     def set_atol(self, atol: float) -> None:
         """Absolute tolerance (N, residual norm) of the later solves, both line searches."""

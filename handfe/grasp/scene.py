@@ -746,6 +746,7 @@ class GraspFE:
         # a failed solve's note says where its smallest cell was ("2.7 mm under the
         # thumb/proximal skin"), not only its J
         self.solver.locate = lambda centre: describe_cell(model, centre)
+        self.solver.damping = s.guard_damping
         # Newton on the contact kinks can cycle between two active sets at a residual of
         # 1e-5 N (whole-hand cylinder, 1 Dec 2026): below 1e-4 N (out of balance force, N;
         # 2e-5 of a 5 N digit force) that state is accepted, counted in the summary
@@ -2010,6 +2011,8 @@ class GraspFE:
                 # Newton steps the inversion guard shortened, and the smallest fraction kept
                 "guarded_steps": int(g.shortened) if (g := self.solver.guard) else 0,
                 "smallest_guarded_step": float(g.smallest) if g else 1.0,
+                # solver.guard_damping: the largest Levenberg-Marquardt shift used (0 = none)
+                "guard_damping_max_shift": float(self.solver.damping_max),
                 "final_residual_N": self._residual_norm(),
                 "outer_iterations": self.outer_iterations,
                 "uzawa_updates": self.augmentations, "step_cuts": self.cuts,
