@@ -198,7 +198,7 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str) -> str:
                                          "2 ranks (skin cells under the pads trade volume); "
                                          "with solver.guard_damping = true it balanced the "
                                          "full load in 27 min, and its final contact phase "
-                                         "was still failing steps at 41 min",
+                                         "was still failing steps at 47 min",
              ("spherical", "coarse"): "balanced the full load but failed its final contact "
                                       "phase (fat cells between bone and ball collapse)",
              ("precision", "coarse"): "reached 53 % of the load"}
