@@ -268,7 +268,8 @@ class TwoFormNewton:
     locate: Callable[[np.ndarray], str] | None = None
     #: Levenberg-Marquardt damping driven by the guard (workflow key solver.guard_damping):
     #: the Jacobian's displacement diagonal gets + damping_shift x |K_ii|; the shift is set
-    #: from each step's guard scale (``_precheck``) and carries over to the next solve
+    #: from each step's guard scale (``_precheck``) and carries over to the next solve; the
+    #: Jacobians the SNES asks for only (not :func:`condensed_tangent`'s)
     damping = False
     damping_shift = 0.0
     #: the largest shift used so far (summary.json)
@@ -370,7 +371,9 @@ class TwoFormNewton:
         A.assemblyEnd(PETSc.Mat.AssemblyType.FLUSH)
         fem_petsc.assemble_matrix(A, self.a[0], bcs=self.problem.bcs, diagonal=1.0)
         A.assemble()
-        if self.damping_shift > 0.0:
+        # the damping is Newton's (snes given), not the tangent's: the condensed tangent of
+        # the torque Newton (snes None) stays the true one
+        if snes is not None and self.damping_shift > 0.0:
             d = A.getDiagonal()
             m = self._damped_rows()
             d.array[m] += self.damping_shift * np.abs(d.array[m])
