@@ -1522,7 +1522,7 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     assert muscles_mode_caveat("angles", "spherical", "reduced") == ""
     assert muscles_mode_caveat("muscles", "cylindrical", "coarse") == ""
     reduced = muscles_mode_caveat("muscles", "cylindrical", "reduced")
-    assert "only on the cylinder at mesh 'coarse'" in reduced
+    assert "('done') only on the cylinder at mesh 'coarse'" in reduced
     assert "failed the first quarter of the load" in reduced and "partial" in reduced
     assert "guard_damping" in reduced
     assert "53 %" in muscles_mode_caveat("muscles", "precision", "coarse")

@@ -212,9 +212,9 @@ class SolverSpec:
     # next Jacobians add lambda |K_ii| to the displacement diagonal (Levenberg-Marquardt:
     # lambda 1e-3, x10 after each such step, /10 after a step the guard left whole, 0 below
     # 1e-3). The residual is unchanged, so is a converged state; the damped steps avoid the
-    # near-singular modes that drive cells to collapse (reduced muscle-driven cylinder: torque
-    # iteration 3 of load 0.25 converged where it had failed through two cuts; docs/grasp.md,
-    # thirty-sixth session)
+    # near-singular modes that drive cells to collapse (reduced muscle-driven cylinder: load
+    # 0.25 balanced without a failed solve where it had failed through four cuts, the full
+    # load in 27 min; docs/grasp.md, thirty-sixth session)
     guard_damping: bool = False
     # line search of the re-solves after a change of the contact data (Uzawa update, penalty
     # increase) from a converged state; "basic" falls back to "bt" from that state

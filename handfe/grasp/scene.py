@@ -190,7 +190,7 @@ def balance_problems(summary: Mapping[str, Any], mode: str, torque_rtol: float) 
 
 def muscles_mode_caveat(mode: str, grasp: str, level: str) -> str:
     """What the muscle-driven mode has shown for this grasp and mesh level, when that is less
-    than the full EMG load balanced ("" otherwise, and in the angles mode): said before the run,
+    than a finished run ("" otherwise, and in the angles mode): said before the run,
     so nobody waits 40 minutes for a failure that is already known (docs/grasp.md)."""
     if mode != "muscles" or (grasp == "cylindrical" and level == "coarse"):
         return ""
@@ -203,7 +203,7 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str) -> str:
                                       "phase (fat cells between bone and ball collapse)",
              ("precision", "coarse"): "reached 53 % of the load"}
     seen = known.get((grasp, level), "has not been run")
-    return (f"the muscle-driven mode has balanced the full EMG load only on the cylinder at mesh "
+    return (f"the muscle-driven mode has run to the end ('done') only on the cylinder at mesh "
             f"'coarse'; {grasp} at '{level}' {seen} (docs/grasp.md); a run that gives up "
             "writes the last balanced load's results, marked partial")
 
