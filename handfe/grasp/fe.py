@@ -261,7 +261,8 @@ class TwoFormNewton:
 
     _count = 0
     #: after a solve whose steps the inversion guard kept short, "; inversion guard shortened
-    #: ..." (a stall at a cell near its J bound, not only at a contact kink), else ""
+    #: ..." (a stall at a cell near its J bound, not only at a contact kink; a failed solve's
+    #: note also says where the smallest cell was), else ""
     guard_note = ""
     #: names where a cell centre (mm, reference) lies, for the guard's note (collective call);
     #: None: the note gives the coordinates
@@ -428,7 +429,7 @@ class TwoFormNewton:
         if g is not None and g.shortened > shortened0:
             self.guard_note = (f"; inversion guard shortened {g.shortened - shortened0} of "
                                f"{its} steps, to x{g.smallest:.2g} at least; smallest cell J "
-                               f"{g.min_J:.2g}{self._where(g.min_J_centre)}")
+                               f"{g.min_J:.2g}")
         if not ok and self.history and all(np.isfinite(self.history)) \
                 and self.history[-1] <= self.stall_atol:
             # a stall at a negligible residual (an active-set flip between two contact
@@ -439,6 +440,10 @@ class TwoFormNewton:
             self.x.copy(p.w.vector)
             p.w.x.scatter_forward()
             return ok, its, str(reason)
+        if self.guard_note:
+            # where the smallest cell is, for failed solves only (a KD-tree over the skin and
+            # a collective call: not worth it on every converged solve the guard touched)
+            self.guard_note += self._where(g.min_J_centre)
         return ok, its, str(reason) + self.guard_note
 
     def _where(self, centre: np.ndarray | None) -> str:
