@@ -9,7 +9,9 @@ modulus, joint angles and torque data), every nodal/cell array keyed by its dof 
 because the mesh partition differs between runs. ``replay`` builds the same scene (mesh,
 forms: ~20 s), restores the dump on any partition, runs one of the modes below and writes
 the outputs to ``DIR/replay-MODE[-smoothingDELTA]`` or ``--out`` (``summary.json`` status,
-equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb cone first):
+equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb cone first;
+``--mesh LEVEL`` overrides the workflow's mesh level, in both actions alike; the dump keeps
+``solver.guard_damping``'s shift, which carries across solves):
 
 - ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``);
 - ``final-phase`` (from a dump ``--at full-load``): the final Uzawa phase and tight solve
@@ -81,12 +83,14 @@ def _spaces(scene) -> dict:
 def _write_dump(scene, folder: Path, what: str) -> None:
     data = {"snap": scene._snapshot(),
             "extra": {k: getattr(scene, k, None) for k in EXTRA},
+            # solver.guard_damping's Levenberg-Marquardt shift, which carries across solves
+            "damping_shift": scene.solver.damping_shift,
             "keys": {k: dof_keys(V) for k, V in _spaces(scene).items()}}
     (folder / f"dump{MPI.COMM_WORLD.rank}.pkl").write_bytes(pickle.dumps(data))
     scene.say(f"{what} dumped to {folder}")
 
 
-def dump(workflow: str, folder: Path, at: str = "final") -> None:
+def dump(workflow: str, folder: Path, at: str = "final", mesh: str | None = None) -> None:
     """Run ``workflow``, dumping the state where the final tight solve starts (``at`` =
     "final") or where the final Uzawa phase starts, the full EMG load balanced ("full-load")."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -108,7 +112,7 @@ def dump(workflow: str, folder: Path, at: str = "final") -> None:
             phase(self)
 
         S.GraspFE._final_muscle_phase = patched_phase
-    S.run_workflow(workflow, out_dir=folder / "run")
+    S.run_workflow(workflow, mesh=mesh, out_dir=folder / "run")
 
 
 def restore(scene, folder: Path) -> None:
@@ -137,6 +141,7 @@ def restore(scene, folder: Path) -> None:
     scene._restore(snap)
     for k, v in dumps[0]["extra"].items():
         setattr(scene, k, v)
+    scene.solver.damping_shift = dumps[0].get("damping_shift", 0.0)
 
 
 def derivatives(scene) -> None:
@@ -265,7 +270,7 @@ def balance(scene) -> None:
 
 
 def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = None,
-           out: Path | None = None) -> None:
+           out: Path | None = None, mesh: str | None = None) -> None:
     def solve_muscles(self) -> None:
         restore(self, folder)
         t0 = time.perf_counter()
@@ -284,7 +289,7 @@ def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = Non
 
     S.GraspFE.solve_muscles = solve_muscles
     tail = "" if smoothing is None else f"-smoothing{smoothing:g}"
-    r = S.run_workflow(workflow, out_dir=out or folder / f"replay-{mode}{tail}")
+    r = S.run_workflow(workflow, mesh=mesh, out_dir=out or folder / f"replay-{mode}{tail}")
     if MPI.COMM_WORLD.rank == 0:
         s = r.summary
         print(f"status {s.get('status')}, equilibrium {s.get('equilibrium_relative_error')}, "
@@ -309,13 +314,15 @@ def main() -> None:
                     help="dump: where the run's state is dumped - where the final tight solve "
                          "starts (default), or where the final Uzawa phase starts, the full "
                          "EMG load balanced (for replay --mode final-phase)")
+    ap.add_argument("--mesh", default=None, metavar="LEVEL",
+                    help="mesh level instead of the workflow's (dump and replay alike)")
     ap.add_argument("--out", type=Path, default=None,
                     help="replay: the output folder (default DIR/replay-MODE[-smoothingDELTA])")
     a = ap.parse_args()
     if a.action == "dump":
-        dump(a.workflow, a.folder, a.at)
+        dump(a.workflow, a.folder, a.at, a.mesh)
     else:
-        replay(a.workflow, a.folder, a.mode, a.friction_smoothing, a.out)
+        replay(a.workflow, a.folder, a.mode, a.friction_smoothing, a.out, a.mesh)
 
 
 if __name__ == "__main__":
