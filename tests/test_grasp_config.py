@@ -1,6 +1,7 @@
 """Grasp workflow inputs and rigid-body mechanics (no FE): configuration errors name file and
 key; object placement refuses intersections; ligament law, muscle torques and bone motions."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,8 @@ from handfe.paths import REPO_ROOT
 
 
 @pytest.mark.parametrize("name", ["cylindrical", "spherical", "precision",
-                                  "cylindrical_muscles", "cylindrical_muscles_free"])
+                                  "cylindrical_muscles", "cylindrical_muscles_free",
+                                  "cylindrical_muscles_reduced"])
 def test_shipped_workflows_load(name):
     wf = load_workflow(REPO_ROOT / "workflows" / f"{name}.toml")
     g = wf.grasp_spec()
@@ -1522,8 +1524,15 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     assert muscles_mode_caveat("angles", "spherical", "reduced") == ""
     assert muscles_mode_caveat("muscles", "cylindrical", "coarse") == ""
     reduced = muscles_mode_caveat("muscles", "cylindrical", "reduced")
-    assert "('done') only on the cylinder at mesh 'coarse'" in reduced
+    assert "('done') only on the cylinder, at mesh 'coarse' and at 'reduced'" in reduced
     assert "failed the first quarter of the load" in reduced and "partial" in reduced
-    assert "guard_damping" in reduced
-    assert "53 %" in muscles_mode_caveat("muscles", "precision", "coarse")
+    assert "guard_damping" in reduced and "cylindrical_muscles_reduced.toml" in reduced
+    # the reduced recipe's keys: known to run to the end, no caveat; one of them off: caveat
+    recipe = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles_reduced.toml")
+    assert muscles_mode_caveat("muscles", "cylindrical", "reduced", recipe.solver) == ""
+    undamped = dataclasses.replace(recipe.solver, guard_damping=False)
+    assert muscles_mode_caveat("muscles", "cylindrical", "reduced", undamped) == reduced
+    loose = dataclasses.replace(recipe.solver, muscle_stall_rtol=1e-4)
+    assert muscles_mode_caveat("muscles", "cylindrical", "reduced", loose) == reduced
+    assert "53 %" in muscles_mode_caveat("muscles", "precision", "coarse", recipe.solver)
     assert "has not been run" in muscles_mode_caveat("muscles", "precision", "default")
