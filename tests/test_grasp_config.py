@@ -1519,7 +1519,11 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     """A muscle-driven run other than the coarse cylinder starts with a note of what that
     combination has shown (docs/grasp.md), so that a user does not wait 40 minutes for a known
     failure; the angles mode and the coarse cylinder get none."""
-    from handfe.grasp.scene import muscles_mode_caveat
+    from handfe.grasp.scene import (
+        REDUCED_CYLINDER_KEYS,
+        REDUCED_CYLINDER_STALL_RTOL,
+        muscles_mode_caveat,
+    )
 
     assert muscles_mode_caveat("angles", "spherical", "reduced") == ""
     assert muscles_mode_caveat("muscles", "cylindrical", "coarse") == ""
@@ -1527,8 +1531,11 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     assert "('done') only on the cylinder, at mesh 'coarse' and at 'reduced'" in reduced
     assert "failed the first quarter of the load" in reduced and "partial" in reduced
     assert "guard_damping" in reduced and "cylindrical_muscles_reduced.toml" in reduced
+    # the note's words, the check and the recipe say the same value
+    assert float(REDUCED_CYLINDER_KEYS.rsplit(">= ", 1)[1]) == REDUCED_CYLINDER_STALL_RTOL
     # the reduced recipe's keys: known to run to the end, no caveat; one of them off: caveat
     recipe = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles_reduced.toml")
+    assert recipe.solver.muscle_stall_rtol == REDUCED_CYLINDER_STALL_RTOL
     assert muscles_mode_caveat("muscles", "cylindrical", "reduced", recipe.solver) == ""
     undamped = dataclasses.replace(recipe.solver, guard_damping=False)
     assert muscles_mode_caveat("muscles", "cylindrical", "reduced", undamped) == reduced

@@ -190,6 +190,7 @@ def balance_problems(summary: Mapping[str, Any], mode: str, torque_rtol: float) 
 
 #: the [solver] keys with which the muscle-driven cylinder at 'reduced' ran to the end
 #: (workflows/cylindrical_muscles_reduced.toml; docs/grasp.md, thirty-seventh session)
+REDUCED_CYLINDER_STALL_RTOL = 3e-4
 REDUCED_CYLINDER_KEYS = "solver.guard_damping = true and solver.muscle_stall_rtol >= 3e-4"
 
 
@@ -202,7 +203,7 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
     if mode != "muscles" or (grasp == "cylindrical" and level == "coarse"):
         return ""
     reduced_keys = solver is not None and solver.guard_damping \
-        and solver.muscle_stall_rtol >= 3e-4
+        and solver.muscle_stall_rtol >= REDUCED_CYLINDER_STALL_RTOL
     if grasp == "cylindrical" and level == "reduced" and reduced_keys:
         return ""
     known = {("cylindrical", "reduced"): "failed the first quarter of the load after ~40 min on "
