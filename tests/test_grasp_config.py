@@ -47,6 +47,22 @@ def test_shipped_workflows_load(name):
         assert wf.solver.free_object == name.endswith("_free")
 
 
+def test_the_reduced_muscles_recipe_is_the_coarse_one_with_its_three_keys():
+    """workflows/cylindrical_muscles_reduced.toml is a copy of cylindrical_muscles.toml (the
+    loader has no includes): it must differ in mesh, guard_damping and muscle_stall_rtol only,
+    so a change to the coarse recipe that is not made to the reduced one is caught here."""
+    coarse = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles.toml")
+    reduced = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles_reduced.toml")
+    assert (reduced.mesh, coarse.mesh) == ("reduced", "coarse")
+    assert reduced.solver.guard_damping and not coarse.solver.guard_damping
+    assert reduced.solver.muscle_stall_rtol > coarse.solver.muscle_stall_rtol
+    back = dataclasses.replace(reduced, mesh=coarse.mesh, source=coarse.source,
+                               solver=dataclasses.replace(
+                                   reduced.solver, guard_damping=coarse.solver.guard_damping,
+                                   muscle_stall_rtol=coarse.solver.muscle_stall_rtol))
+    assert back == coarse
+
+
 def _write(tmp_path: Path, text: str, name: str = "wf.toml") -> Path:
     p = tmp_path / name
     p.write_text(text)
