@@ -130,6 +130,11 @@ def test_precision_light_grip_end_to_end_two_ranks(light_pinch):
     if COMM.rank == 0:
         for f in ("regions.csv", "fingertips.csv", "summary.json", "pressure.png"):
             assert (out / f).is_file(), f
+        # summary.json keeps every key the run used: the CI changes to the shipped recipe too
+        st = json.loads((out / "summary.json").read_text())["settings"]
+        assert (st["mesh"], st["loading"], st["solver"]["digit_force_N"]) == \
+            ("coarse", "angles", 1.0)
+        assert st["solver"]["digit_force_rtol"] == wf.solver.digit_force_rtol
 
 
 def decisions(summary: dict) -> list[tuple]:

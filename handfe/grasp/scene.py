@@ -21,7 +21,7 @@ import contextlib
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -268,7 +268,10 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     subcut = materials.get("subcutaneous") or Ogden.subcutaneous(nu=wf.solver.nu)
     summary: dict[str, Any] = {"workflow": wf.source, "grasp": grasp.name, "subject": str(
         subject_dir), "loading": mode, "mesh": level, "element": wf.element,
-        "stages_s": stages, "status": "running"}
+        "stages_s": stages, "status": "running",
+        # every key the run used (the workflow's over its base's and the defaults), so a run
+        # folder says how to redo it
+        "settings": asdict(replace(wf, mesh=level, loading=mode))}
 
     def checkpoint(status: str) -> None:
         summary["status"] = status
