@@ -48,9 +48,9 @@ def test_shipped_workflows_load(name):
 
 
 def test_the_reduced_muscles_recipe_is_the_coarse_one_with_its_three_keys():
-    """workflows/cylindrical_muscles_reduced.toml is a copy of cylindrical_muscles.toml (the
-    loader has no includes): it must differ in mesh, guard_damping and muscle_stall_rtol only,
-    so a change to the coarse recipe that is not made to the reduced one is caught here."""
+    """workflows/cylindrical_muscles_reduced.toml is cylindrical_muscles.toml (its ``base``)
+    with mesh, guard_damping and muscle_stall_rtol changed, nothing else (a key added to it
+    that would change the run is caught here)."""
     coarse = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles.toml")
     reduced = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles_reduced.toml")
     assert (reduced.mesh, coarse.mesh) == ("reduced", "coarse")
@@ -67,6 +67,43 @@ def _write(tmp_path: Path, text: str, name: str = "wf.toml") -> Path:
     p = tmp_path / name
     p.write_text(text)
     return p
+
+
+def test_a_workflow_takes_its_base_keys_under_its_own(tmp_path):
+    """``base``: every key of the base workflow, this file's over it, [solver] key by key; a
+    base by name (workflows/) or by a path relative to the file; a subject path of the base
+    means the base's folder."""
+    (tmp_path / "common" / "subj").mkdir(parents=True)
+    (tmp_path / "common" / "subj" / "anthropometry.toml").write_text("")
+    _write(tmp_path / "common", 'subject = "subj"\ngrasp = "precision"\nmesh = "coarse"\n'
+           '[solver]\ntorque_rtol = 2e-3\nmax_step_deg = 1.0\n', "b.toml")
+    (tmp_path / "runs").mkdir()
+    p = _write(tmp_path / "runs", 'base = "../common/b.toml"\nmesh = "reduced"\n'
+               '[solver]\nmax_step_deg = 2.0\n')
+    wf = load_workflow(p)
+    assert (wf.mesh, wf.grasp, wf.solver.torque_rtol, wf.solver.max_step_deg) == \
+        ("reduced", "precision", 2e-3, 2.0)
+    assert wf.subject_dir() == tmp_path / "common" / "subj"
+    assert wf.source == str(p)
+    shipped = load_workflow("cylindrical_muscles")
+    named = load_workflow(_write(tmp_path, 'base = "cylindrical_muscles"\n'))
+    assert dataclasses.replace(named, source=shipped.source) == shipped
+
+
+def test_a_bad_base_is_named_with_its_file(tmp_path):
+    """A missing base, a base that is not a string, a loop of bases, and a bad key inside the
+    base: each error names the file that has the problem and the key."""
+    with pytest.raises(ConfigError, match=r"wf\.toml: 'base' = 'nope\.toml': no workflow file"):
+        load_workflow(_write(tmp_path, 'base = "nope.toml"\n'))
+    with pytest.raises(ConfigError, match=r"wf\.toml: 'base' = 3"):
+        load_workflow(_write(tmp_path, "base = 3\n"))
+    _write(tmp_path, 'base = "b.toml"\n', "a.toml")
+    _write(tmp_path, 'base = "a.toml"\n', "b.toml")
+    with pytest.raises(ConfigError, match=r"'base' = 'a\.toml': the bases form a loop"):
+        load_workflow(tmp_path / "a.toml")
+    _write(tmp_path, 'grasp = "precision"\n[solver]\ntorque_rtoll = 1e-3\n', "c.toml")
+    with pytest.raises(ConfigError, match=r"c\.toml: unknown key 'solver\.torque_rtoll'"):
+        load_workflow(_write(tmp_path, 'base = "c.toml"\nmesh = "coarse"\n'))
 
 
 def test_unknown_key_names_file_and_key(tmp_path):

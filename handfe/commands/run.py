@@ -22,7 +22,9 @@ Loading:
            with this file's keys, 15-16 min on 2 cores, and L and M before them), with
            solver.tangent_predictor, solver.inversion_guard, solver.muscle_final_uzawa =
            "interleaved", solver.friction_smoothing and solver.muscle_uzawa_max_mm (set
-           there; off by default). Earlier runs ended "unbalanced" (object vs support 6e-5
+           there; off by default); at mesh reduced with solver.guard_damping and
+           solver.muscle_stall_rtol = 3e-4 more (workflows/cylindrical_muscles_reduced.toml,
+           "done" in 46 min). Earlier runs ended "unbalanced" (object vs support 6e-5
            where the final FE solves stalled) or failed in the final Uzawa phase; with
            that recipe the ball balanced the full load but failed its final Uzawa phase,
            and the pinch reached 53 % of it (docs/grasp.md);
@@ -40,6 +42,13 @@ Loading:
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
            bring the penetration to <= 0.01 mm
 
+Workflow file: subject, grasp, trial, loading, mesh, element, base; tables [solver] and
+[outputs] (each key with its range and why: handfe/grasp/config.py; an unknown key or a value
+out of range is refused, naming the file and the key). base = "NAME" (a workflow in
+workflows/, or a path relative to the repository or to the file) starts from every key of
+that workflow; the file's own keys replace them, [solver] and [outputs] key by key (e.g.
+workflows/cylindrical_muscles_reduced.toml = cylindrical_muscles.toml + 3 keys).
+
 Writes into --out (rank 0):
   regions.csv     per region (thumb, index, middle, ring, little, palm, and each digit's
                   proximal/middle/distal segment): contact_area_mm2 (skin within
@@ -52,7 +61,9 @@ Writes into --out (rank 0):
                   peak memory (the largest rank's peak resident set, GB); the object is held
                   in space, and net_object_force_N is what its support takes (the digits'
                   forces do not balance each other: 5-21 N at 5 N per digit, README); with
-                  solver.free_object (muscles mode) it is ~0 and the object moves
+                  solver.free_object (muscles mode) it is ~0 and the object moves;
+                  settings: every key the run used (the file's, its base's, the defaults,
+                  with --mesh and --loading applied)
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)

@@ -6,6 +6,7 @@ radial, y distal, z palmar; mm), see docs/anatomy.md."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -299,11 +300,19 @@ def _resolve(path: str, source: str) -> Path:
 
 
 def load_workflow(path: str | Path) -> Workflow:
-    """Read a workflow TOML (path, or a name in workflows/)."""
-    p = Path(path)
-    if not p.suffix and not p.exists():
-        p = WORKFLOWS_DIR / f"{path}.toml"
-    raw = load_toml(p)
+    """Read a workflow TOML (path, or a name in workflows/).
+
+    A workflow may start from another one: ``base = "cylindrical_muscles"`` (a name in
+    workflows/, or a path relative to the repository or to this file) takes every key of that
+    workflow (itself checked as a workflow first) and this file's keys over it, table by table
+    (``[solver]`` keys one by one), so a variant states only what it changes."""
+    return _load_workflow(_workflow_path(path), ())[0]
+
+
+def _load_workflow(p: Path, chain: tuple[Path, ...]) -> tuple[Workflow, dict]:
+    """The workflow in file ``p`` and its keys merged over its bases'; ``chain``: the files
+    that use it as a base, innermost last."""
+    raw = _workflow_raw(p, chain)
     wf = replace(from_dict(Workflow, raw, source=str(p)), source=str(p))
     # the key as written (the default applies to p1-p1s only and is not refused elsewhere)
     given = raw.get("solver", {}).get("stabilisation_modulus")
@@ -316,4 +325,50 @@ def load_workflow(path: str | Path) -> Workflow:
                           "the guard's step cuts")
     wf.subject_dir()
     wf.grasp_spec()
-    return wf
+    return wf, raw
+
+
+def _workflow_path(path: str | Path, source: Path | None = None) -> Path:
+    """A workflow file: ``path`` as given, relative to the repository or to ``source``'s folder
+    (a base's), or a name in workflows/."""
+    p = Path(path)
+    if not p.suffix and not p.exists():
+        return WORKFLOWS_DIR / f"{path}.toml"
+    if source is not None and not p.is_absolute() and not p.exists():
+        for root in (REPO_ROOT, source.parent):
+            if (root / p).is_file():
+                return root / p
+    return p
+
+
+def _workflow_raw(p: Path, chain: tuple[Path, ...]) -> dict:
+    """The keys of workflow file ``p`` over those of its ``base`` chain (each base loaded and
+    checked as a workflow on its own, so an error names the file it is in)."""
+    raw = load_toml(p)
+    base = raw.pop("base", None)
+    if base is None:
+        return raw
+    if not isinstance(base, str) or not base:
+        raise ConfigError(f"{p}: 'base' = {base!r}: expected a workflow name or path")
+    bp = _workflow_path(base, p)
+    if not bp.is_file():
+        known = ", ".join(sorted(q.stem for q in WORKFLOWS_DIR.glob("*.toml")))
+        raise ConfigError(f"{p}: 'base' = {base!r}: no workflow file {bp} (workflows/: {known})")
+    seen = (*chain, p.resolve())
+    if bp.resolve() in seen:
+        loop = " -> ".join(str(q) for q in (*seen, bp.resolve()))
+        raise ConfigError(f"{p}: 'base' = {base!r}: the bases form a loop ({loop})")
+    merged = dict(_load_workflow(bp, seen)[1])
+    for key in ("subject", "grasp"):
+        # a base's relative path means the same folder when another file uses it
+        v = merged.get(key)
+        path_like = key == "subject" or "/" in str(v) or str(v).endswith(".toml")
+        if key not in raw and isinstance(v, str) and path_like and not Path(v).is_absolute() \
+                and not (REPO_ROOT / v).exists():
+            merged[key] = os.path.normpath(bp.parent / v)
+    for key, value in raw.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
