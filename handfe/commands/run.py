@@ -45,7 +45,7 @@ Loading:
 Workflow file: subject, grasp, trial, loading, mesh, element, base; tables [solver] and
 [outputs] (each key with its range and why: handfe/grasp/config.py; an unknown key or a value
 out of range is refused, naming the file and the key). base = "NAME" (a workflow in
-workflows/, or a path relative to the repository or to the file) starts from every key of
+workflows/, or a path relative to the file or to the repository) starts from every key of
 that workflow; the file's own keys replace them, [solver] and [outputs] key by key (e.g.
 workflows/cylindrical_muscles_reduced.toml = cylindrical_muscles.toml + 3 keys).
 

@@ -303,7 +303,7 @@ def load_workflow(path: str | Path) -> Workflow:
     """Read a workflow TOML (path, or a name in workflows/).
 
     A workflow may start from another one: ``base = "cylindrical_muscles"`` (a name in
-    workflows/, or a path relative to the repository or to this file) takes every key of that
+    workflows/, or a path relative to this file or to the repository) takes every key of that
     workflow (itself checked as a workflow first) and this file's keys over it, table by table
     (``[solver]`` keys one by one), so a variant states only what it changes."""
     return _load_workflow(_workflow_path(path), ())[0]
@@ -329,16 +329,16 @@ def _load_workflow(p: Path, chain: tuple[Path, ...]) -> tuple[Workflow, dict]:
 
 
 def _workflow_path(path: str | Path, source: Path | None = None) -> Path:
-    """A workflow file: ``path`` as given, relative to the repository or to ``source``'s folder
-    (a base's), or a name in workflows/."""
+    """A workflow file: ``path`` (for a base of ``source``: relative to ``source``'s folder
+    first, then to the repository), else a name in workflows/."""
     p = Path(path)
-    if not p.suffix and not p.exists():
-        return WORKFLOWS_DIR / f"{path}.toml"
-    if source is not None and not p.is_absolute() and not p.exists():
-        for root in (REPO_ROOT, source.parent):
-            if (root / p).is_file():
-                return root / p
-    return p
+    if p.is_absolute():
+        return p
+    roots = (source.parent, REPO_ROOT) if source is not None else ()
+    for q in (*(r / p for r in roots), p):
+        if q.is_file():
+            return q
+    return WORKFLOWS_DIR / f"{path}.toml" if not p.suffix else p
 
 
 def _workflow_raw(p: Path, chain: tuple[Path, ...]) -> dict:
