@@ -106,6 +106,61 @@ def test_a_bad_base_is_named_with_its_file(tmp_path):
         load_workflow(_write(tmp_path, 'base = "c.toml"\nmesh = "coarse"\n'))
 
 
+def test_set_overrides_change_the_named_keys_only():
+    """``handfe run --set KEY=VALUE`` (``parse_overrides``): values read as TOML (a bare word as
+    a string), [solver] keys one by one over the file's; the rest of the workflow unchanged."""
+    from handfe.grasp.config import parse_overrides
+
+    over = parse_overrides(["solver.guard_damping=true", "solver.muscle_stall_rtol=3e-4",
+                            "mesh=reduced", 'solver.stabilisation_modulus="pressure"',
+                            "solver.muscle_final_uzawa=interleaved"])
+    assert over == {"mesh": "reduced", "solver": {
+        "guard_damping": True, "muscle_stall_rtol": 3e-4, "stabilisation_modulus": "pressure",
+        "muscle_final_uzawa": "interleaved"}}
+    coarse = load_workflow("cylindrical_muscles")
+    wf = load_workflow("cylindrical_muscles", over)
+    assert dataclasses.replace(wf, mesh=coarse.mesh, solver=dataclasses.replace(
+        wf.solver, guard_damping=False, muscle_stall_rtol=coarse.solver.muscle_stall_rtol,
+        stabilisation_modulus=coarse.solver.stabilisation_modulus)) == coarse
+    # the shipped reduced recipe is the coarse one with three keys: the same as --set
+    reduced = load_workflow("cylindrical_muscles_reduced", None)
+    same = load_workflow("cylindrical_muscles", parse_overrides(
+        ["mesh=reduced", "solver.guard_damping=true", "solver.muscle_stall_rtol=3e-4"]))
+    assert dataclasses.replace(same, source=reduced.source) == reduced
+
+
+@pytest.mark.parametrize("item, message", [
+    ("solver.torque_rtoll=1e-3", r"--set: unknown key 'solver\.torque_rtoll'"),
+    ("solver.torque_rtol=-1", r"--set: 'solver\.torque_rtol' = -1.*out of range"),
+    ("mesh=coars", r"--set: 'mesh' = 'coars': must be one of"),
+    ("solver.guard_damping", r"--set 'solver\.guard_damping': expected KEY=VALUE"),
+    ("solver..nu=0.49", r"expected KEY=VALUE"),
+    ("mesh.level=coarse", r"--set: 'mesh' = \{'level': 'coarse'\}: expected a string"),
+])
+def test_bad_set_overrides_are_named(item, message):
+    from handfe.grasp.config import parse_overrides
+
+    with pytest.raises(ConfigError, match=message):
+        parse_overrides([item])
+
+
+def test_set_overrides_that_clash_with_the_file_name_both():
+    from handfe.grasp.config import parse_overrides
+
+    with pytest.raises(ConfigError, match=r"precision\.toml with --set: 'solver\.guard_damping'"):
+        load_workflow("precision", parse_overrides(["solver.guard_damping=true"]))
+
+
+def test_handfe_run_set_refuses_a_bad_key_before_running(tmp_path, capsys):
+    from handfe.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", "precision", "--set", "solver.max_step_degs=1", "--out",
+                 str(out)]) == 2
+    assert "--set: unknown key 'solver.max_step_degs'" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_unknown_key_names_file_and_key(tmp_path):
     p = _write(tmp_path, 'subject = "subjects/S01"\ngrasp = "precision"\nmeshh = "reduced"\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*meshh"):

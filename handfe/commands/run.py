@@ -47,7 +47,8 @@ Workflow file: subject, grasp, trial, loading, mesh, element, base; tables [solv
 out of range is refused, naming the file and the key). base = "NAME" (a workflow in
 workflows/, or a path relative to the file or to the repository) starts from every key of
 that workflow; the file's own keys replace them, [solver] and [outputs] key by key (e.g.
-workflows/cylindrical_muscles_reduced.toml = cylindrical_muscles.toml + 3 keys).
+workflows/cylindrical_muscles_reduced.toml = cylindrical_muscles.toml + 3 keys). --set
+KEY=VALUE changes a key for one run without a file.
 
 Writes into --out (rank 0):
   regions.csv     per region (thumb, index, middle, ring, little, palm, and each digit's
@@ -78,6 +79,7 @@ muscles run also writes the last balanced load's results, marked "partial").
 Examples:
   handfe run workflows/cylindrical.toml --mesh reduced --out results/cylindrical
   mpirun -n 2 handfe run workflows/precision.toml --out results/precision
+  handfe run spherical --mesh coarse --set solver.digit_force_N=2.0 --out results/ball_2N
 """
 
 
@@ -90,6 +92,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "time against error per level: README, benchmarks/grasp_time_vs_error.py)")
     p.add_argument("--loading", choices=("muscles", "angles"), default=None,
                    help="loading mode, overrides the workflow's")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change one workflow key for this run, over the file's (repeatable; "
+                   "the value is read as TOML, a bare word as a string), e.g. --set "
+                   "solver.guard_damping=true --set solver.muscle_stall_rtol=3e-4; checked "
+                   "like a key in the file; summary.json settings keeps what the run used")
     p.add_argument("--out", required=True, help="output folder (created)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
@@ -99,10 +106,12 @@ def run(args: argparse.Namespace) -> int:
     import sys
     from pathlib import Path
 
-    from handfe.grasp import run_workflow
+    from handfe.grasp import load_workflow, run_workflow
+    from handfe.grasp.config import parse_overrides
     from handfe.parallel import rprint
 
-    res = run_workflow(args.workflow, mesh=args.mesh, out_dir=Path(args.out),
+    wf = load_workflow(args.workflow, parse_overrides(args.set)) if args.set else args.workflow
+    res = run_workflow(wf, mesh=args.mesh, out_dir=Path(args.out),
                        loading=args.loading, progress=not args.quiet)
     status = res.summary.get("status")
     if status == "done":

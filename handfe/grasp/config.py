@@ -7,6 +7,7 @@ radial, y distal, z palmar; mm), see docs/anatomy.md."""
 from __future__ import annotations
 
 import os
+import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -299,28 +300,58 @@ def _resolve(path: str, source: str) -> Path:
     return Path(source).parent / p
 
 
-def load_workflow(path: str | Path) -> Workflow:
+def load_workflow(path: str | Path, overrides: dict | None = None) -> Workflow:
     """Read a workflow TOML (path, or a name in workflows/).
 
     A workflow may start from another one: ``base = "cylindrical_muscles"`` (a name in
     workflows/, or a path relative to this file or to the repository) takes every key of that
     workflow (itself checked as a workflow first) and this file's keys over it, table by table
-    (``[solver]`` keys one by one), so a variant states only what it changes."""
-    return _load_workflow(_workflow_path(path), ())[0]
+    (``[solver]`` keys one by one), so a variant states only what it changes. ``overrides``
+    (:func:`parse_overrides`, ``handfe run --set``) go over the file's keys the same way."""
+    return _load_workflow(_workflow_path(path), (), overrides)[0]
 
 
-def _load_workflow(p: Path, chain: tuple[Path, ...]) -> tuple[Workflow, dict]:
+def parse_overrides(items: list[str] | tuple[str, ...], *, source: str = "--set") -> dict:
+    """``["solver.guard_damping=true", "mesh=coarse", ...]`` as a workflow table (values read
+    as TOML, a bare word as a string), each key checked against the workflow's keys and
+    ranges; an error names ``source`` and the item."""
+    table: dict = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key or any(not part for part in key.split(".")):
+            raise ConfigError(f"{source} {item!r}: expected KEY=VALUE, e.g. "
+                              "solver.guard_damping=true")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        *tables, leaf = key.split(".")
+        node = table
+        for t in tables:
+            node = node.setdefault(t, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{source} {item!r}: '{t}' is not a table")
+        node[leaf] = value
+    from_dict(Workflow, table, source=source)
+    return table
+
+
+def _load_workflow(p: Path, chain: tuple[Path, ...],
+                   overrides: dict | None = None) -> tuple[Workflow, dict]:
     """The workflow in file ``p`` and its keys merged over its bases'; ``chain``: the files
-    that use it as a base, innermost last."""
-    raw = _workflow_raw(p, chain)
-    wf = replace(from_dict(Workflow, raw, source=str(p)), source=str(p))
+    that use it as a base, innermost last; ``overrides`` (:func:`parse_overrides`) over all."""
+    raw = _merge(_workflow_raw(p, chain), overrides or {})
+    # an error of the keys together names the overrides too: they may be its cause
+    src = f"{p} with --set" if overrides else str(p)
+    wf = replace(from_dict(Workflow, raw, source=src), source=str(p))
     # the key as written (the default applies to p1-p1s only and is not refused elsewhere)
     given = raw.get("solver", {}).get("stabilisation_modulus")
     if given is not None and wf.element != "p1-p1s":
-        raise ConfigError(f"{p}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
+        raise ConfigError(f"{src}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
-        raise ConfigError(f"{p}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
+        raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
                           f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "
                           "the guard's step cuts")
     wf.subject_dir()
@@ -366,9 +397,15 @@ def _workflow_raw(p: Path, chain: tuple[Path, ...]) -> dict:
         if key not in raw and isinstance(v, str) and path_like and not Path(v).is_absolute() \
                 and not (REPO_ROOT / v).exists():
             merged[key] = os.path.normpath(bp.parent / v)
-    for key, value in raw.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = {**merged[key], **value}
+    return _merge(merged, raw)
+
+
+def _merge(under: dict, over: dict) -> dict:
+    """``over``'s keys over ``under``'s, tables key by key."""
+    out = dict(under)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = {**out[key], **value}
         else:
-            merged[key] = value
-    return merged
+            out[key] = value
+    return out
