@@ -10,7 +10,8 @@ because the mesh partition differs between runs. ``replay`` builds the same scen
 forms: ~20 s), restores the dump on any partition, runs one of the modes below and writes
 the outputs to ``DIR/replay-MODE[-smoothingDELTA]`` or ``--out`` (``summary.json`` status,
 equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb cone first;
-``--mesh LEVEL`` overrides the workflow's mesh level, in both actions alike; the dump keeps
+``--mesh LEVEL`` overrides the workflow's mesh level and ``--set KEY=VALUE`` any key (as
+``handfe run --set``), in both actions alike; the dump keeps
 ``solver.guard_damping``'s shift, which carries across solves):
 
 - ``tighten``: the run's final tight solve (``GraspFE._tighten(stalled=True)``);
@@ -90,7 +91,8 @@ def _write_dump(scene, folder: Path, what: str) -> None:
     scene.say(f"{what} dumped to {folder}")
 
 
-def dump(workflow: str, folder: Path, at: str = "final", mesh: str | None = None) -> None:
+def dump(workflow: str | S.Workflow, folder: Path, at: str = "final",
+         mesh: str | None = None) -> None:
     """Run ``workflow``, dumping the state where the final tight solve starts (``at`` =
     "final") or where the final Uzawa phase starts, the full EMG load balanced ("full-load")."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -269,7 +271,7 @@ def balance(scene) -> None:
     scene._tighten(stalled=True)
 
 
-def replay(workflow: str, folder: Path, mode: str, smoothing: float | None = None,
+def replay(workflow: str | S.Workflow, folder: Path, mode: str, smoothing: float | None = None,
            out: Path | None = None, mesh: str | None = None) -> None:
     def solve_muscles(self) -> None:
         restore(self, folder)
@@ -316,13 +318,21 @@ def main() -> None:
                          "EMG load balanced (for replay --mode final-phase)")
     ap.add_argument("--mesh", default=None, metavar="LEVEL",
                     help="mesh level instead of the workflow's (dump and replay alike)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="change a workflow key, as handfe run --set (e.g. a [solver] key of "
+                         "the final phase to replay: --set solver.muscle_stall_rtol=3e-4)")
     ap.add_argument("--out", type=Path, default=None,
                     help="replay: the output folder (default DIR/replay-MODE[-smoothingDELTA])")
     a = ap.parse_args()
+    workflow = a.workflow
+    if a.set:
+        from handfe.grasp.config import load_workflow, parse_overrides
+
+        workflow = load_workflow(a.workflow, parse_overrides(a.set))
     if a.action == "dump":
-        dump(a.workflow, a.folder, a.at, a.mesh)
+        dump(workflow, a.folder, a.at, a.mesh)
     else:
-        replay(a.workflow, a.folder, a.mode, a.friction_smoothing, a.out, a.mesh)
+        replay(workflow, a.folder, a.mode, a.friction_smoothing, a.out, a.mesh)
 
 
 if __name__ == "__main__":
