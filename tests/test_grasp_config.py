@@ -161,6 +161,25 @@ def test_handfe_run_set_refuses_a_bad_key_before_running(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_show_prints_every_key_as_a_workflow_that_loads_back(tmp_path, capsys):
+    """``handfe run FILE --show`` (``workflow_toml``): the keys after base, --set, --mesh and
+    --loading, as a TOML that loads to the same workflow; no run, no --out needed."""
+    from handfe.cli import main
+    from handfe.grasp.config import parse_overrides, workflow_toml
+
+    wf = load_workflow("cylindrical_muscles_reduced",
+                       parse_overrides(["solver.nu=0.4999", 'solver.friction_smoothing=0.05']))
+    back = load_workflow(_write(tmp_path, workflow_toml(wf)))
+    assert dataclasses.replace(back, source=wf.source) == wf
+    assert main(["run", "cylindrical_muscles_reduced", "--set", "solver.nu=0.4999",
+                 "--mesh", "coarse", "--show"]) == 0
+    text = capsys.readouterr().out
+    assert 'mesh = "coarse"' in text and "guard_damping = true" in text
+    assert "nu = 0.4999" in text and "[outputs]" in text
+    assert main(["run", "precision"]) == 2  # neither --out nor --show
+    assert "--out is required" in capsys.readouterr().err
+
+
 def test_unknown_key_names_file_and_key(tmp_path):
     p = _write(tmp_path, 'subject = "subjects/S01"\ngrasp = "precision"\nmeshh = "reduced"\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*meshh"):

@@ -48,7 +48,7 @@ out of range is refused, naming the file and the key). base = "NAME" (a workflow
 workflows/, or a path relative to the file or to the repository) starts from every key of
 that workflow; the file's own keys replace them, [solver] and [outputs] key by key (e.g.
 workflows/cylindrical_muscles_reduced.toml = cylindrical_muscles.toml + 3 keys). --set
-KEY=VALUE changes a key for one run without a file.
+KEY=VALUE changes a key for one run without a file; --show prints every key a run would use.
 
 Writes into --out (rank 0):
   regions.csv     per region (thumb, index, middle, ring, little, palm, and each digit's
@@ -80,6 +80,7 @@ Examples:
   handfe run workflows/cylindrical.toml --mesh reduced --out results/cylindrical
   mpirun -n 2 handfe run workflows/precision.toml --out results/precision
   handfe run spherical --mesh coarse --set solver.digit_force_N=2.0 --out results/ball_2N
+  handfe run cylindrical_muscles_reduced --show
 """
 
 
@@ -97,20 +98,32 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "the value is read as TOML, a bare word as a string), e.g. --set "
                    "solver.guard_damping=true --set solver.muscle_stall_rtol=3e-4; checked "
                    "like a key in the file; summary.json settings keeps what the run used")
-    p.add_argument("--out", required=True, help="output folder (created)")
+    p.add_argument("--show", action="store_true",
+                   help="print every key the run would use (the workflow's, its base's, the "
+                   "defaults, --set) as a workflow TOML, and exit without running")
+    p.add_argument("--out", help="output folder (created; needed unless --show)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     import sys
+    from dataclasses import replace
     from pathlib import Path
 
+    from handfe.errors import InputError
     from handfe.grasp import load_workflow, run_workflow
-    from handfe.grasp.config import parse_overrides
+    from handfe.grasp.config import parse_overrides, workflow_toml
     from handfe.parallel import rprint
 
-    wf = load_workflow(args.workflow, parse_overrides(args.set)) if args.set else args.workflow
+    wf = load_workflow(args.workflow, parse_overrides(args.set) if args.set else None)
+    if args.mesh or args.loading:
+        wf = replace(wf, mesh=args.mesh or wf.mesh, loading=args.loading or wf.loading)
+    if args.show:
+        rprint(workflow_toml(wf), end="")
+        return 0
+    if not args.out:
+        raise InputError("--out is required (the output folder), unless --show")
     res = run_workflow(wf, mesh=args.mesh, out_dir=Path(args.out),
                        loading=args.loading, progress=not args.quiet)
     status = res.summary.get("status")

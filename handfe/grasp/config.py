@@ -6,9 +6,10 @@ radial, y distal, z palmar; mm), see docs/anatomy.md."""
 
 from __future__ import annotations
 
+import json
 import os
 import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from handfe.config import bounds, choices, from_dict, load, load_toml
@@ -409,3 +410,25 @@ def _merge(under: dict, over: dict) -> dict:
         else:
             out[key] = value
     return out
+
+
+def workflow_toml(wf: Workflow) -> str:
+    """Every key of ``wf`` as a workflow TOML (``handfe run --show``): what a run of it uses,
+    after its base and any ``--set``; loading the text gives ``wf`` back."""
+
+    def value(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return json.dumps(v)  # a TOML basic string for these values
+        if isinstance(v, list | tuple):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    d = asdict(wf)
+    lines = [f"# every key of {wf.source or 'the workflow'} (its base and --set applied)"]
+    lines += [f"{k} = {value(v)}" for k, v in d.items() if not isinstance(v, dict)
+              and k != "source"]
+    for table in ("solver", "outputs"):
+        lines += ["", f"[{table}]"] + [f"{k} = {value(v)}" for k, v in d[table].items()]
+    return "\n".join(lines) + "\n"
