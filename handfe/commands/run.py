@@ -124,8 +124,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not args.out:
         raise InputError("--out is required (the output folder), unless --show")
-    res = run_workflow(wf, mesh=args.mesh, out_dir=Path(args.out),
-                       loading=args.loading, progress=not args.quiet)
+    res = run_workflow(wf, out_dir=Path(args.out), progress=not args.quiet)
     status = res.summary.get("status")
     if status == "done":
         return 0

@@ -395,9 +395,9 @@ def _workflow_raw(p: Path, chain: tuple[Path, ...]) -> dict:
         # a base's relative path means the same folder when another file uses it
         v = merged.get(key)
         path_like = key == "subject" or "/" in str(v) or str(v).endswith(".toml")
-        if key not in raw and isinstance(v, str) and path_like and not Path(v).is_absolute() \
-                and not (REPO_ROOT / v).exists():
-            merged[key] = os.path.normpath(bp.parent / v)
+        if key not in raw and isinstance(v, str) and path_like \
+                and _resolve(v, str(bp)) != _resolve(v, str(p)):
+            merged[key] = os.path.normpath(_resolve(v, str(bp)))
     return _merge(merged, raw)
 
 
