@@ -23,7 +23,8 @@ equilibrium, torque residuals; ``--friction-smoothing DELTA`` rounds the Coulomb
 - ``cone``: the skin area whose contact quadrature points sit within a tolerance of the
   normal-contact switch (lambda_n - k_n g = 0) or of the Coulomb cone (|trial| = mu p);
 - ``linesearch``: the tight solve with PETSc's l2, cp and nleqerr line searches;
-- ``cells``: the tissue's volume change and the ten smallest-J tissue cells (where, how deep);
+- ``cells``: the tissue's volume change, the smallest cells' pressure against their bulk
+  modulus (the law's J for it), and the ten smallest-J tissue cells (where, how deep);
 - ``balance``: the tight solve, then torque Newton iterations with tight FE solves (no
   grip-scaled stall tolerance), then the tight solve again.
 
@@ -241,6 +242,21 @@ def cells(scene) -> None:
     prob = scene.problem
     scene.say("tissue volume: " + ", ".join(f"{k} {v:.4g}"
                                              for k, v in prob.tissue_volume().items()))
+    # is a small J the law's answer to the pressure (J = 1 + p / kappa) or the element's
+    # volume trading? the cell mean pressure p against the cell's bulk modulus kappa
+    tissue, J = prob.tissue_cell_J()
+    pdof = prob.W.sub(1).dofmap.list.array.reshape(-1, 4)
+    p = prob.w.x.array[pdof[tissue]].mean(axis=1)
+    kdof = prob.inv_kappa.function_space.dofmap.list.array
+    pk = p * prob.inv_kappa.x.array[kdof[tissue]]
+    J, p, pk = (np.concatenate(prob.comm.allgather(a)) for a in (J, p, pk))
+    low = np.argsort(J, kind="stable")[:15]
+    scene.say(f"cells at J < 0.2: {np.count_nonzero(J < 0.2)}, at J < 0.1: "
+              f"{np.count_nonzero(J < 0.1)}; the 15 smallest (J {J[low].min():.3g}-"
+              f"{J[low].max():.3g}) carry p {1e3 * p[low].min():.0f} to {1e3 * p[low].max():.0f}"
+              f" kPa, p / kappa {pk[low].min():.3f} to {pk[low].max():.3f} (the law's J = 1 + "
+              f"p / kappa: {1 + pk[low].min():.2f}-{1 + pk[low].max():.2f}); the most "
+              f"compressed cell: p / kappa {pk.min():.3f} at J {J[np.argmin(pk)]:.3g}")
     for c in smallest_tissue_cells(prob, scene.model, scene.obstacle,
                                    scene.contact.translation.value, k=10):
         scene.say(f"cell J {c['J']:.3g} at {c['centre_mm']} ({c['nearest_skin']} skin "
