@@ -204,6 +204,26 @@ def test_guard_damping_needs_the_guard(tmp_path):
     assert load_workflow(p).solver.guard_damping
 
 
+def test_muscle_force_scale_is_checked_and_belongs_to_the_muscles_mode(tmp_path):
+    """A lighter (or heavier) grip than the EMG estimate: every muscle force x the scale, in
+    0.01-2; the angles mode does not use muscle forces, so a scale there is refused."""
+    p = _write(tmp_path, 'grasp = "precision"\nloading = "muscles"\nmuscle_force_scale = 0.1\n')
+    assert load_workflow(p).muscle_force_scale == 0.1
+    assert load_workflow("cylindrical_muscles").muscle_force_scale == 1.0
+    p = _write(tmp_path, 'grasp = "precision"\nloading = "muscles"\nmuscle_force_scale = 0\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'muscle_force_scale' = 0.*out of range"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "precision"\nmuscle_force_scale = 0.5\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'muscle_force_scale' = 0\.5.*'angles'"):
+        load_workflow(p)
+    from handfe.grasp.config import parse_overrides
+
+    # by --set on a muscle-driven recipe, as a user would lighten it for one run
+    wf = load_workflow("cylindrical_muscles", parse_overrides(
+        ["muscle_force_scale=0.25"]))
+    assert wf.muscle_force_scale == 0.25
+
+
 def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nnewton_linesearch = "cp"\n')
     with pytest.raises(ConfigError, match="newton_linesearch"):
@@ -1668,5 +1688,11 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     assert muscles_mode_caveat("muscles", "cylindrical", "reduced", undamped) == reduced
     loose = dataclasses.replace(recipe.solver, muscle_stall_rtol=1e-4)
     assert muscles_mode_caveat("muscles", "cylindrical", "reduced", loose) == reduced
-    assert "53 %" in muscles_mode_caveat("muscles", "precision", "coarse", recipe.solver)
-    assert "has not been run" in muscles_mode_caveat("muscles", "precision", "default")
+    full = muscles_mode_caveat("muscles", "precision", "coarse", recipe.solver)
+    assert "53 %" in full and "at muscle_force_scale <= 0.1 it ran to the end" in full
+    assert "at the full EMG load" in full
+    # a light grip where one has run to the end: no caveat; heavier: the caveat
+    assert muscles_mode_caveat("muscles", "precision", "coarse", recipe.solver, 0.1) == ""
+    assert muscles_mode_caveat("muscles", "precision", "coarse", recipe.solver, 0.5) == full
+    assert "has not been run" in muscles_mode_caveat("muscles", "precision", "default", None,
+                                                     0.1)

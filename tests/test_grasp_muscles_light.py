@@ -4,13 +4,13 @@ The shipped muscle-driven recipe (``workflows/cylindrical_muscles.toml``: closin
 digit, then the EMG muscle torques balanced against ligaments and contact with the flexion
 DOFs released, then the Uzawa phase to the 0.01 mm target) on the cylinder with thumb and
 index taking part (middle, ring and little not meshed) and every muscle force at 0.1 of the
-subject's EMG estimate: 5 released joints, 15.1k dofs, ~75 s per run on 2 ranks. The
-whole-hand runs at full load take 15-45 min (docs/grasp.md) and are not CI material; the
-other muscle-mode tests drive the same code with stand-in FE problems
+subject's EMG estimate (``muscle_force_scale = 0.1``): 5 released joints, 15.1k dofs, ~75 s
+per run on 2 ranks. The whole-hand runs at full load take 15-45 min (docs/grasp.md) and are
+not CI material; the other muscle-mode tests drive the same code with stand-in FE problems
 (tests/test_grasp_config.py), this one with the real one.
 
-Measured (7 Dec 2026, thirty-ninth session; ``mpirun -n 2 --allow-run-as-root
-.venv/bin/python -m pytest -q -m mpi tests/test_grasp_muscles_light.py`` runs the same): done
+Measured (7 Dec 2026, thirty-ninth session, ``mpirun -n 2 --allow-run-as-root
+.venv/bin/python scripts/mpi-pytest.py -q -m mpi tests/test_grasp_muscles_light.py``): done
 in 75 s, 308 Newton iterations, torque residual <= 1.6e-4 of the applied torque at every
 released joint, penetration 0.0059 mm, object force = reactions to 9e-15; thumb 5.12 N, index
 1.505 N. FDP + 10 %: index 1.566 N (+4 %), thumb unchanged.
@@ -24,14 +24,15 @@ import pytest
 from mpi4py import MPI
 from test_grasp_power_light import _two_digit_grasp  # pytest puts tests/ on sys.path
 
+from handfe.emg import muscle_forces
 from handfe.grasp import run_workflow
 from handfe.grasp.config import load_workflow
 
 COMM = MPI.COMM_WORLD
 DIGITS = ("thumb", "index")
-#: every muscle at this fraction of its EMG force: the full load takes the whole hand 15-45 min
+#: workflow muscle_force_scale: every muscle at 0.1 of its EMG force (the full load takes the
+#: whole hand 15-45 min)
 LOAD = 0.1
-MUSCLES = ("FDS", "FDP", "APL", "APB", "AP", "FPB", "FDI", "SDI", "TDI")
 pytestmark = [pytest.mark.mpi, pytest.mark.slow,
               pytest.mark.skipif(COMM.size == 1,
                                  reason="2-rank regression; runs under make test-mpi")]
@@ -41,8 +42,8 @@ def _run(folder, name: str, fdp: float = 1.0):
     wf = load_workflow("cylindrical_muscles")
     assert wf.loading == "muscles"
     wf = replace(wf, grasp=str(folder / "cylindrical_ci.toml"), mesh="coarse",
-                 outputs=replace(wf.outputs, fields=False))
-    scale = {m: LOAD * (fdp if m == "FDP" else 1.0) for m in MUSCLES}
+                 muscle_force_scale=LOAD, outputs=replace(wf.outputs, fields=False))
+    scale = {"FDP": fdp} if fdp != 1.0 else None
     return wf, run_workflow(wf, out_dir=folder / name, muscle_scale=scale, progress=False)
 
 
@@ -68,7 +69,10 @@ def test_muscle_driven_grasp_balances_every_released_joint(light_muscles):
     s = res.summary
     assert s["status"] == "done", s.get("error")
     assert s["loading"] == "muscles"
-    assert s["muscle_forces_N"]["FDP"] > 0.0
+    emg = {m: f for m, (f, _sd) in muscle_forces(wf.subject_dir(), "cylindrical").items()}
+    for m, f in emg.items():  # muscle_force_scale scales every muscle
+        assert s["muscle_forces_N"][m] == pytest.approx(LOAD * f, rel=1e-12), m
+    assert s["muscle_force_scale"] == LOAD and s["settings"]["muscle_force_scale"] == LOAD
     assert set(s["skipped"]["digits"]) == {"middle", "ring", "little"}
     joints = s["joints"]
     assert {j.split("_")[0] for j in joints} == set(DIGITS)
@@ -118,9 +122,7 @@ def test_muscle_driven_grasp_one_rank_matches_two_ranks(light_muscles):
     wf, res2, folder = light_muscles
     one = None
     if COMM.rank == 0:
-        scale = {m: LOAD for m in MUSCLES}
-        r1 = run_workflow(wf, out_dir=None, comm=MPI.COMM_SELF, muscle_scale=scale,
-                          progress=False)
+        r1 = run_workflow(wf, out_dir=None, comm=MPI.COMM_SELF, progress=False)
         one = (r1.summary, r1.regions)
     s1, reg1 = COMM.bcast(one, root=0)
     s2, reg2 = res2.summary, res2.regions

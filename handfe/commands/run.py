@@ -37,18 +37,21 @@ Loading:
            tissue/contact torques balance at every joint (relative residual <= 1e-3);
            solver.dip_pip_coupling (default 2/3) ties each DIP to its PIP; the object is
            held (its support takes the net force); solver.free_object = true solves its
-           translation too (no stable pinch with the nine flexor-side muscles: docs/grasp.md)
+           translation too (no stable pinch with the nine flexor-side muscles: docs/grasp.md).
+           muscle_force_scale (default 1) multiplies every EMG muscle force: a lighter grip
+           than measured (e.g. --set muscle_force_scale=0.1)
   angles   (default) each participating digit closes from the pre-closed posture until it
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
            bring the penetration to <= 0.01 mm
 
-Workflow file: subject, grasp, trial, loading, mesh, element, base; tables [solver] and
-[outputs] (each key with its range and why: handfe/grasp/config.py; an unknown key or a value
-out of range is refused, naming the file and the key). base = "NAME" (a workflow in
-workflows/, or a path relative to the file or to the repository) starts from every key of
-that workflow; the file's own keys replace them, [solver] and [outputs] key by key (e.g.
-workflows/cylindrical_muscles_reduced.toml = cylindrical_muscles.toml + 3 keys). --set
-KEY=VALUE changes a key for one run without a file; --show prints every key a run would use.
+Workflow file: subject, grasp, trial, loading, muscle_force_scale, mesh, element, base;
+tables [solver] and [outputs] (each key with its range and why: handfe/grasp/config.py; an
+unknown key or a value out of range is refused, naming the file and the key). base =
+"NAME" (a workflow in workflows/, or a path relative to the file or to the repository)
+starts from every key of that workflow; the file's own keys replace them, [solver] and
+[outputs] key by key (e.g. workflows/cylindrical_muscles_reduced.toml =
+cylindrical_muscles.toml + 3 keys). --set KEY=VALUE changes a key for one run without a
+file; --show prints every key a run would use.
 
 Writes into --out (rank 0):
   regions.csv     per region (thumb, index, middle, ring, little, palm, and each digit's

@@ -265,6 +265,10 @@ class Workflow:
     trial: int = field(default=0, metadata=bounds(0, 1000))  # 0 = mean over the trials
     # "angles" (kinematic closing) by default: the muscle-driven mode does not converge yet
     loading: str = field(default="angles", metadata=choices("muscles", "angles"))
+    # muscles mode: every muscle force x this (1 = the subject's EMG estimate for the grasp;
+    # below 1 a lighter grip, the EMG-to-force map being linear). At 0.1 all three grasps run
+    # to the end (docs/grasp.md, thirty-ninth session); the angles mode does not use it
+    muscle_force_scale: float = field(default=1.0, metadata=bounds(0.01, 2.0))
     mesh: str = field(default="reduced", metadata=choices(*MESH_LEVELS))
     # p1-p1s: P1-P1 u-p with pressure stabilisation (locking-free, default); p1-p0: the hybrid
     # linear tet (locks on tets, see docs/grasp.md); taylor-hood: P2-P1 (reference, ~8x dofs)
@@ -351,6 +355,9 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
     if given is not None and wf.element != "p1-p1s":
         raise ConfigError(f"{src}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")
+    if wf.muscle_force_scale != 1.0 and wf.loading != "muscles":
+        raise ConfigError(f"{src}: 'muscle_force_scale' = {wf.muscle_force_scale:g} scales the "
+                          f"muscles mode's loads; loading = {wf.loading!r} does not use them")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
         raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
                           f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "
