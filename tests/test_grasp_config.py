@@ -1696,3 +1696,6 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     assert muscles_mode_caveat("muscles", "precision", "coarse", recipe.solver, 0.5) == full
     assert "has not been run" in muscles_mode_caveat("muscles", "precision", "default", None,
                                                      0.1)
+    assert muscles_mode_caveat("muscles", "spherical", "coarse", recipe.solver, 0.1) == ""
+    ball = muscles_mode_caveat("muscles", "spherical", "coarse", recipe.solver, 0.25)
+    assert "final contact phase" in ball and "<= 0.1 it ran to the end" in ball

@@ -197,7 +197,7 @@ REDUCED_CYLINDER_KEYS = "solver.guard_damping = true and solver.muscle_stall_rto
 #: (grasp, mesh level) -> the largest workflow muscle_force_scale at which the muscle-driven
 #: mode has run to the end there with the shipped recipe's keys where the full load has not
 #: (docs/grasp.md, thirty-ninth session)
-LIGHT_MUSCLE_RUNS_DONE = {("precision", "coarse"): 0.1}
+LIGHT_MUSCLE_RUNS_DONE = {("precision", "coarse"): 0.1, ("spherical", "coarse"): 0.1}
 
 
 def muscles_mode_caveat(mode: str, grasp: str, level: str,
