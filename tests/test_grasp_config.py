@@ -36,7 +36,8 @@ from handfe.paths import REPO_ROOT
 
 @pytest.mark.parametrize("name", ["cylindrical", "spherical", "precision",
                                   "cylindrical_muscles", "cylindrical_muscles_free",
-                                  "cylindrical_muscles_reduced"])
+                                  "cylindrical_muscles_reduced", "precision_muscles_light",
+                                  "spherical_muscles_light"])
 def test_shipped_workflows_load(name):
     wf = load_workflow(REPO_ROOT / "workflows" / f"{name}.toml")
     g = wf.grasp_spec()
@@ -61,6 +62,23 @@ def test_the_reduced_muscles_recipe_is_the_coarse_one_with_its_three_keys():
                                    reduced.solver, guard_damping=coarse.solver.guard_damping,
                                    muscle_stall_rtol=coarse.solver.muscle_stall_rtol))
     assert back == coarse
+
+
+@pytest.mark.parametrize("grasp", ["precision", "spherical"])
+def test_the_light_muscles_recipes_are_the_cylinder_one_on_their_grasp_at_a_tenth(grasp):
+    """workflows/{precision,spherical}_muscles_light.toml: cylindrical_muscles.toml (their
+    ``base``) with grasp and muscle_force_scale = 0.1 changed, nothing else; the muscles-mode
+    caveat has nothing to add for them (both ran to the end: docs/grasp.md, thirty-ninth
+    session)."""
+    from handfe.grasp.scene import muscles_mode_caveat
+
+    base = load_workflow(REPO_ROOT / "workflows" / "cylindrical_muscles.toml")
+    light = load_workflow(REPO_ROOT / "workflows" / f"{grasp}_muscles_light.toml")
+    assert (light.grasp, light.muscle_force_scale) == (grasp, 0.1)
+    assert dataclasses.replace(light, grasp=base.grasp, muscle_force_scale=1.0,
+                               source=base.source) == base
+    assert muscles_mode_caveat(light.loading, grasp, light.mesh, light.solver,
+                               light.muscle_force_scale) == ""
 
 
 def _write(tmp_path: Path, text: str, name: str = "wf.toml") -> Path:

@@ -266,8 +266,9 @@ class Workflow:
     # "angles" (kinematic closing) by default: the muscle-driven mode does not converge yet
     loading: str = field(default="angles", metadata=choices("muscles", "angles"))
     # muscles mode: every muscle force x this (1 = the subject's EMG estimate for the grasp;
-    # below 1 a lighter grip, the EMG-to-force map being linear). At 0.1 all three grasps run
-    # to the end (docs/grasp.md, thirty-ninth session); the angles mode does not use it
+    # below 1 a lighter grip, the EMG-to-force map being linear). At 0.1 the pinch and the
+    # ball run to the end at coarse, where the full load fails (docs/grasp.md, thirty-ninth
+    # session; workflows/*_muscles_light.toml); the angles mode does not use it
     muscle_force_scale: float = field(default=1.0, metadata=bounds(0.01, 2.0))
     mesh: str = field(default="reduced", metadata=choices(*MESH_LEVELS))
     # p1-p1s: P1-P1 u-p with pressure stabilisation (locking-free, default); p1-p0: the hybrid

@@ -220,7 +220,9 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
                                          "under the pads trade volume), and its final contact "
                                          "phase with solver.muscle_stall_rtol = 1e-4",
              ("spherical", "coarse"): "balanced the full load but failed its final contact "
-                                      "phase (fat cells between bone and ball collapse)",
+                                      "phase (fat cells between bone and ball collapse; at "
+                                      "muscle_force_scale = 0.25 that phase cycled without "
+                                      "converging)",
              ("precision", "coarse"): "reached 53 % of the load"}
     seen = known.get((grasp, level), "has not been run")
     if light is not None:
@@ -316,8 +318,9 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         of = f" ({wf.muscle_force_scale:g} x EMG)" if wf.muscle_force_scale != 1.0 else ""
         say(f"{grasp.name}: posture from {pose_src}; muscle forces{of} "
             + ", ".join(f"{m} {f:.0f} N" for m, f in forces.items()))
+        # a per-muscle factor above 1 (sensitivity) takes that muscle past the scale run
         caveat = muscles_mode_caveat(mode, grasp.name, level, wf.solver,
-                                     wf.muscle_force_scale)
+                                     wf.muscle_force_scale * max([1.0, *scale.values()]))
         if caveat:
             summary["caveat"] = caveat
             say(f"note: {caveat}")
