@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 from test_grasp_power_light import _two_digit_grasp  # pytest puts tests/ on sys.path
+from test_grasp_run import run_on_rank0_too
 
 from handfe.emg import muscle_forces
 from handfe.grasp import run_workflow
@@ -119,15 +120,8 @@ def test_muscle_driven_grasp_one_rank_matches_two_ranks(light_muscles):
     iterations, load steps, Uzawa updates) and the same equilibrium angles and forces.
     Measured 7 Dec 2026: 308 iterations on both, grip 6.624721525938 N on both (to 1e-14),
     angles to 1e-12 deg; 120 s on 1 rank, 75 s on 2."""
-    wf, res2, folder = light_muscles
-    one = None
-    if COMM.rank == 0:
-        r1 = run_workflow(wf, out_dir=None, comm=MPI.COMM_SELF, progress=False)
-        one = (r1.summary, r1.regions)
-    s1, reg1 = COMM.bcast(one, root=0)
-    s2, reg2 = res2.summary, res2.regions
-    assert s1["status"] == s2["status"] == "done"
-    assert s1["dofs"] == s2["dofs"]
+    wf, res2, _ = light_muscles
+    (s1, reg1), (s2, reg2) = run_on_rank0_too(wf, res2)
     for k in ("newton_iterations", "load_steps", "uzawa_updates", "step_cuts"):
         assert s1[k] == s2[k], k
     assert s1["grip_force_N"] == pytest.approx(s2["grip_force_N"], rel=1e-6)

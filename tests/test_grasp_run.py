@@ -90,6 +90,21 @@ def light_workflow(name: str = "precision", grasp: str | None = None):
                    outputs=replace(wf.outputs, fields=False))
 
 
+def run_on_rank0_too(wf, res2):
+    """``wf`` run again on rank 0 alone (COMM_SELF; the mesh from the cache the 2-rank run
+    ``res2`` filled): ((summary, regions) of 1 rank, the same of ``res2``) on every rank, both
+    runs done on the same number of dofs."""
+    one = None
+    if COMM.rank == 0:
+        r1 = run_workflow(wf, out_dir=None, comm=MPI.COMM_SELF, progress=False)
+        one = (r1.summary, r1.regions)
+    s1, reg1 = COMM.bcast(one, root=0)
+    s2, reg2 = res2.summary, res2.regions
+    assert s1["status"] == s2["status"] == "done"
+    assert s1["dofs"] == s2["dofs"]
+    return (s1, reg1), (s2, reg2)
+
+
 @pytest.fixture(scope="module")
 def light_pinch(tmp_path_factory):
     """The CI-sized pinch on 2 ranks (each digit closes to 1 N instead of 5 N), run once for
@@ -174,14 +189,7 @@ def test_precision_light_grip_one_rank_matches_two_ranks(light_pinch):
     be valid (done, balanced, within the penetration target, every digit at its force), and the
     test is marked xfail, naming the first decision that differs."""
     wf, res2, _ = light_pinch
-    one = None
-    if COMM.rank == 0:
-        r1 = run_workflow(wf, out_dir=None, comm=MPI.COMM_SELF, progress=False)
-        one = (r1.summary, r1.regions)
-    s1, reg1 = COMM.bcast(one, root=0)
-    s2, reg2 = res2.summary, res2.regions
-    assert s1["status"] == s2["status"] == "done"
-    assert s1["dofs"] == s2["dofs"]
+    (s1, reg1), (s2, reg2) = run_on_rank0_too(wf, res2)
     diff = first_difference(decisions(s1), decisions(s2))
     if diff is not None:
         # up to the first different decision both took the same path: the same forces there
