@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 from test_grasp_power_light import _two_digit_grasp  # pytest puts tests/ on sys.path
-from test_grasp_run import run_on_rank0_too
+from test_grasp_run import decisions, first_difference, run_on_rank0_too
 
 from handfe.emg import muscle_forces
 from handfe.grasp import run_workflow
@@ -116,14 +116,24 @@ def test_more_flexor_force_never_lowers_the_contact_force_of_its_digit(light_mus
                     reason="opt-in (HANDFE_GRASP_E2E=1): +120 s; the pinch's 1- vs 2-rank test "
                     "runs in CI (tests/test_grasp_run.py)")
 def test_muscle_driven_grasp_one_rank_matches_two_ranks(light_muscles):
-    """The same run on rank 0 alone, on the same mesh (the mesh cache): the same path (Newton
-    iterations, load steps, Uzawa updates) and the same equilibrium angles and forces.
+    """The same run on rank 0 alone, on the same mesh (the mesh cache): the same path (load
+    steps, Newton iterations, Uzawa updates) and the same equilibrium angles and forces.
     Measured 7 Dec 2026: 308 iterations on both, grip 6.624721525938 N on both (to 1e-14),
-    angles to 1e-12 deg; 120 s on 1 rank, 75 s on 2."""
+    angles to 1e-12 deg; 120 s on 1 rank, 75 s on 2. Round-off can flip a decision of a
+    frictional, load-stepped path (the parallel LU is not bit-reproducible: docs/grasp.md; the
+    light ball's two 2-rank runs parted at a closing Uzawa update, 16.3 vs 15.8 N of grip):
+    then both runs must still be balanced, and the test is marked xfail, naming the decision
+    (as the pinch's, tests/test_grasp_run.py)."""
     wf, res2, _ = light_muscles
     (s1, reg1), (s2, reg2) = run_on_rank0_too(wf, res2)
-    for k in ("newton_iterations", "load_steps", "uzawa_updates", "step_cuts"):
-        assert s1[k] == s2[k], k
+    diff = first_difference(decisions(s1), decisions(s2))
+    if diff is not None:
+        for s in (s1, s2):
+            assert s["max_relative_torque_residual"] <= wf.solver.torque_rtol
+            assert s["equilibrium_relative_error"] < 1e-6
+            assert s["max_penetration_mm"] <= wf.solver.penetration_tol_mm
+        pytest.xfail(f"1 and 2 ranks took different decisions ({diff[1]}; 1 rank first): grip "
+                     f"{s1['grip_force_N']:.4f} vs {s2['grip_force_N']:.4f} N")
     assert s1["grip_force_N"] == pytest.approx(s2["grip_force_N"], rel=1e-6)
     for j in s2["joints"]:
         assert s1["joints"][j]["equilibrium_deg"] == pytest.approx(
