@@ -39,7 +39,9 @@ Loading:
            held (its support takes the net force); solver.free_object = true solves its
            translation too (no stable pinch with the nine flexor-side muscles: docs/grasp.md).
            muscle_force_scale (default 1) multiplies every EMG muscle force: a lighter grip
-           than measured (e.g. --set muscle_force_scale=0.1)
+           than measured (e.g. --set muscle_force_scale=0.1); at 0.1 the pinch and the ball
+           run to the end at coarse (workflows/precision_muscles_light.toml, 4 min, and
+           spherical_muscles_light.toml, 11 min, on 2 cores)
   angles   (default) each participating digit closes from the pre-closed posture until it
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
            bring the penetration to <= 0.01 mm
