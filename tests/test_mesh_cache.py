@@ -96,3 +96,25 @@ def test_cache_key_does_not_depend_on_where_the_checkout_is(subject, tmp_path, m
     assert hand_cache_path(subject, pose, *key) == hand_cache_path(rel, rel_pose, *key)
     other = dataclasses.replace(subject, source="elsewhere/S01/anthropometry.toml")
     assert hand_cache_path(other, pose, *key) != hand_cache_path(subject, pose, *key)
+
+
+def test_a_cached_failure_names_paths_in_the_repo_and_its_cause_reads_short(tmp_path):
+    """The failure file is shared by every checkout (the key does not depend on where the
+    checkout is): its message names repo paths, and the grasp's retry line shows the cause."""
+    import json
+
+    from handfe.anatomy.meshing import _cache_failure
+    from handfe.grasp.scene import meshing_cause
+    from handfe.paths import REPO_ROOT
+
+    path = tmp_path / "hand-x.msh"
+    _cache_failure(path, f"meshing failed for pose {REPO_ROOT}/subjects/S01/trials.toml grasp "
+                         "'precision' opened by 5 deg, pre-closed to contact: gmsh returned an "
+                         "empty mesh")
+    error = json.loads(path.with_suffix(".failed.json").read_text())["error"]
+    assert error.startswith("meshing failed for pose subjects/S01/trials.toml grasp")
+    assert meshing_cause(error) == "gmsh returned an empty mesh"
+    assert meshing_cause(error + " (cached failure: /c/hand-x.failed.json; HANDFE_MESH_CACHE=0 "
+                         "or deleting the file meshes it again)") \
+        == "gmsh returned an empty mesh; cached"
+    assert meshing_cause("meshing failed for pose P: " + "x" * 200) == "x" * 77 + "..."

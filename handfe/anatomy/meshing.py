@@ -667,9 +667,9 @@ def _plain(o):
 def _cache_failure(path: Path | None, error: str) -> None:
     from handfe.meshcache import write_atomically
 
-    if path is not None:
+    if path is not None:  # shared by every checkout: the message names paths in the repo
         write_atomically(path.with_suffix(".failed.json"),
-                         lambda tmp: tmp.write_text(json.dumps({"error": error})))
+                         lambda tmp: tmp.write_text(json.dumps({"error": _in_repo(error)})))
 
 
 def build_hand(subject: Anthropometry, pose: Pose | None = None, *,
