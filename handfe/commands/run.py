@@ -27,7 +27,8 @@ Loading:
            "done" in 46 min). Earlier runs ended "unbalanced" (object vs support 6e-5
            where the final FE solves stalled) or failed in the final Uzawa phase; with
            that recipe the ball balanced the full load but failed its final Uzawa phase,
-           and the pinch reached 53 % of it (docs/grasp.md);
+           and the pinch reached 38-53 % of it, its index pad sliding at the friction
+           limit (docs/grasp.md);
            a run that gives up writes the last balanced load's results, marked partial;
            docs/grasp.md (README: Grasp status).
            After the angles-mode closing (frictionless by default),
