@@ -224,9 +224,10 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
                                       "muscle_force_scale = 0.25 that phase cycled without "
                                       "converging)",
              ("precision", "coarse"): "reached 38-53 % of the load (the index pad slides "
-                                      "at the friction limit, mu 0.74, and its PIP does not "
-                                      "balance; at muscle_force_scale = 0.25, 77 %; with a "
-                                      "grasp friction of 1.2 that load ran to the end)"}
+                                      "at the friction limit, mu 0.74, and its PIP torque "
+                                      "does not balance; at muscle_force_scale = 0.25, "
+                                      "77 %; with a grasp friction of 1.2 that load ran to "
+                                      "the end)"}
     seen = known.get((grasp, level), "has not been run")
     if light is not None:
         seen += f" (at muscle_force_scale <= {light:g} it ran to the end)"
