@@ -222,7 +222,8 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
              ("spherical", "coarse"): "balanced the full load but failed its final contact "
                                       "phase (fat cells between bone and ball collapse; at "
                                       "muscle_force_scale = 0.25 that phase cycled without "
-                                      "converging)",
+                                      "converging; with a grasp friction of 1.2 it ran to "
+                                      "the end)",
              ("precision", "coarse"): "reached 38-53 % of the load (the index pad slides "
                                       "at the friction limit, mu 0.74, and its PIP torque "
                                       "does not balance; at muscle_force_scale = 0.25, "
