@@ -103,8 +103,7 @@ def test_a_cached_failure_names_paths_in_the_repo_and_its_cause_reads_short(tmp_
     checkout is): its message names repo paths, and the grasp's retry line shows the cause."""
     import json
 
-    from handfe.anatomy.meshing import _cache_failure
-    from handfe.grasp.scene import meshing_cause
+    from handfe.anatomy.meshing import _cache_failure, failure_cause
     from handfe.paths import REPO_ROOT
 
     path = tmp_path / "hand-x.msh"
@@ -113,8 +112,8 @@ def test_a_cached_failure_names_paths_in_the_repo_and_its_cause_reads_short(tmp_
                          "empty mesh")
     error = json.loads(path.with_suffix(".failed.json").read_text())["error"]
     assert error.startswith("meshing failed for pose subjects/S01/trials.toml grasp")
-    assert meshing_cause(error) == "gmsh returned an empty mesh"
-    assert meshing_cause(error + " (cached failure: /c/hand-x.failed.json; HANDFE_MESH_CACHE=0 "
+    assert failure_cause(error) == "gmsh returned an empty mesh"
+    assert failure_cause(error + " (cached failure: /c/hand-x.failed.json; HANDFE_MESH_CACHE=0 "
                          "or deleting the file meshes it again)") \
         == "gmsh returned an empty mesh; cached"
-    assert meshing_cause("meshing failed for pose P: " + "x" * 200) == "x" * 77 + "..."
+    assert failure_cause("meshing failed for pose P: " + "x" * 200) == "x" * 77 + "..."

@@ -49,6 +49,8 @@ CELL_TAGS = {"skin": 1, "subcutaneous": 2, "nail": 3}
 REGIONS = ("thumb", "index", "middle", "ring", "little", "palm")
 PHALANGES = ("proximal", "middle", "distal")
 SKIN_OUTER_GMSH = 100
+#: what a cached meshing failure's message carries after the original error
+CACHED_FAILURE = " (cached failure"
 WRIST_TAG, CUT_TAG = 90, 91
 BONE_TAG0 = 201
 EXTRA_OPTIMIZE: tuple[str, ...] = ()
@@ -621,7 +623,7 @@ def _read_cached_hand(gmsh, path: Path | None) -> tuple[dict | None, str | None]
     failed = path.with_suffix(".failed.json")
     if failed.exists():
         with contextlib.suppress(OSError, ValueError, KeyError):
-            return None, (json.loads(failed.read_text())["error"] + f" (cached failure: {failed};"
+            return None, (json.loads(failed.read_text())["error"] + f"{CACHED_FAILURE}: {failed};"
                           " HANDFE_MESH_CACHE=0 or deleting the file meshes it again)")
     side = path.with_suffix(".npz")
     if not side.exists():
@@ -662,6 +664,16 @@ def _cache_hand(gmsh, path: Path | None, result: dict) -> None:
 def _plain(o):
     """JSON fallback for numpy scalars and arrays."""
     return o.tolist() if hasattr(o, "tolist") else str(o)
+
+
+def failure_cause(error: str, width: int = 80) -> str:
+    """The cause in a meshing error, for a progress line: the text after the pose's
+    description ("meshing failed for pose P ...: CAUSE"), "; cached" for a cached failure
+    (the full message, in ``summary.json``, names its file), at most ``width`` characters."""
+    cause, cached, _ = error.split(": ", 1)[-1].partition(CACHED_FAILURE)
+    if len(cause) > width:
+        cause = cause[:width - 3] + "..."
+    return cause + ("; cached" if cached else "")
 
 
 def _cache_failure(path: Path | None, error: str) -> None:

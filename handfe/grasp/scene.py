@@ -239,18 +239,6 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
             "marked partial")
 
 
-def meshing_cause(error: str, width: int = 80) -> str:
-    """The cause in a meshing error for a progress line: the text after the pose's
-    description ("meshing failed for pose P ...: CAUSE"), "cached" for a cached failure
-    (whose file the full message in ``summary.json`` names), at most ``width`` characters."""
-    cause = error.split(": ", 1)[-1]
-    cached = " (cached failure" in cause
-    cause = cause.split(" (cached failure")[0]
-    if len(cause) > width:
-        cause = cause[:width - 3] + "..."
-    return cause + ("; cached" if cached else "")
-
-
 def _peak_rss_GB() -> float:
     """This process's peak resident memory so far (GB, 1e9 bytes; Linux reports KiB)."""
     import resource
@@ -269,6 +257,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     ``muscle_scale`` multiplies muscle forces (e.g. {"FDS": 1.1}), on top of the workflow's
     ``muscle_force_scale``."""
     from handfe.anatomy import build_hand, load_subject
+    from handfe.anatomy.meshing import failure_cause
     from handfe.emg import muscle_forces
     from handfe.io import write_json
     from handfe.parallel import rprint
@@ -417,7 +406,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
             if k:
                 pose = closed_pose(pose_opened, {d: replace(c, closing_deg=max(
                     0.0, factor * c.closing_deg - minus)) for d, c in closing.items()})
-                say(f"meshing failed ({meshing_cause(failures[-1])}); retrying with "
+                say(f"meshing failed ({failure_cause(failures[-1])}); retrying with "
                     f"{factor:g} x the pre-closing - {minus:g} deg")
             try:
                 model = build_hand(subject, pose, digits=grasp.digits, level=level, comm=comm)
