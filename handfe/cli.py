@@ -84,7 +84,23 @@ def _report_error(message: str, grace_s: float = 2.0) -> None:
     comm.Abort(2)
 
 
+def _quiet_build_log() -> None:
+    """Keep the C compiler's INFO lines off the console. The first use of a form compiles it
+    (FFCx, then cffi through setuptools, which logs "running build_ext" and every gcc command
+    line to the root logger at INFO); console handlers of the root logger (the one ffcx installs
+    at import, made here first if there is none) print WARNING and above only."""
+    import logging
+
+    root = logging.getLogger()
+    if not root.handlers:
+        logging.basicConfig()  # the handler ffcx's import would install (a no-op there then)
+    for h in root.handlers:
+        if type(h) is logging.StreamHandler:  # not a test runner's capturing subclass
+            h.setLevel(logging.WARNING)
+
+
 def main(argv: list[str] | None = None) -> int:
+    _quiet_build_log()
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

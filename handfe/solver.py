@@ -38,6 +38,11 @@ MIXED_ELEMENTS = ("taylor-hood", "p1-p0")
 #: the MUMPS options of every Newton LU (ICNTL(14): +200 % workspace over the analysis's
 #: estimate, so a factorisation does not fail for lack of it)
 MUMPS_OPTIONS = {"mat_mumps_icntl_14": 200}
+#: forms on meshes of at most this many cells (the verification cubes) are compiled at gcc -O0:
+#: an Ogden Jacobian kernel (3-6 MB of C) takes minutes at the default -O2 and seconds at -O0,
+#: and assembles several times slower, which a few cells do not notice (docs/materials.md)
+FAST_COMPILE_MAX_CELLS = 200
+FAST_COMPILE = {"cffi_extra_compile_args": ["-O0", "-g0"]}
 _prefix_counter = itertools.count()
 
 
@@ -117,12 +122,20 @@ class HyperelasticProblem:
     :meth:`assign_material`) so changing them does not recompile. Extra residual terms (tractions,
     contact) are added with :meth:`add_residual` before the first solve; Dirichlet conditions
     with :meth:`fix`. Residual sign: R(u; v) = int P : grad v dX - external work = 0.
+    ``jit_params`` go to ``fem.form``; by default :data:`FAST_COMPILE` on meshes of at most
+    :data:`FAST_COMPILE_MAX_CELLS` cells, dolfinx's defaults otherwise.
     """
 
     def __init__(self, mesh, material: Material | Mapping[int, Material], *, cell_tags=None,
-                 disc: Discretisation | None = None, incompressible: bool = False):
+                 disc: Discretisation | None = None, incompressible: bool = False,
+                 jit_params: Mapping[str, Any] | None = None):
         self.mesh = mesh
         self.comm: MPI.Comm = mesh.comm
+        if jit_params is None:
+            small = mesh.topology.index_map(mesh.topology.dim).size_global \
+                <= FAST_COMPILE_MAX_CELLS
+            jit_params = FAST_COMPILE if small else {}
+        self.jit_params = dict(jit_params)
         self.disc = disc or Discretisation()
         self.incompressible = incompressible
         if incompressible and not self.disc.mixed:
@@ -217,8 +230,12 @@ class HyperelasticProblem:
         if self._compiled is None:
             R = self.residual
             J = ufl.derivative(R, self.w, ufl.TrialFunction(self.W))
-            self._compiled = (fem.form(R), fem.form(J))
+            self._compiled = (self.form(R), self.form(J))
         return self._compiled
+
+    def form(self, f) -> fem.FormMetaClass:
+        """``fem.form`` of a UFL form of this problem, with its :attr:`jit_params`."""
+        return fem.form(f, jit_params=self.jit_params)
 
     def first_piola(self, tag: int | None = None):
         """Nominal stress tensor P (MPa), UFL, for the material of ``tag``."""
@@ -241,7 +258,7 @@ class HyperelasticProblem:
         """Consistent reaction force (N) on the displacement dofs of ``facets``: the sum of the
         internal residual over those dofs (force the support exerts on the body), reduced over
         ranks (owned dofs only)."""
-        L = fem.form(self.internal_residual)
+        L = self.form(self.internal_residual)
         b = fem_petsc.assemble_vector(L)
         b.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         fdim = self.mesh.topology.dim - 1

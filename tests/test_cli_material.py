@@ -62,3 +62,24 @@ def test_drucker_option():
 def test_help_mentions_units():
     code, out, _ = run(["material", "--help"])
     assert code == 0 and "MPa" in out and "pure shear" in out
+
+
+def test_first_run_compiles_quietly_and_fast(tmp_path):
+    # a fresh machine: an empty form cache. The cube's Ogden forms are compiled at -O0
+    # (handfe.solver.FAST_COMPILE: seconds, not the minutes of gcc -O2), and the compiler's
+    # INFO log ("running build_ext", gcc command lines) stays off the console
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, XDG_CACHE_HOME=str(tmp_path))
+    proc = subprocess.run([sys.executable, "-m", "handfe.cli", "material", "ogden", "--preset",
+                           "skin", "--mode", "uniaxial", "--stretch", "0.9:1.1:3",
+                           "--incompressible"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert any((tmp_path / "fenics").glob("libffcx_forms_*.c"))  # it did compile
+    assert "INFO" not in proc.stderr + proc.stdout
+    assert "gcc" not in proc.stderr + proc.stdout
+    rows = proc.stdout.strip().splitlines()
+    assert rows[0].startswith("stretch,") and len(rows) == 4

@@ -19,6 +19,8 @@ from handfe.materials import (
     homogeneous,
 )
 from handfe.solver import (
+    FAST_COMPILE,
+    FAST_COMPILE_MAX_CELLS,
     Discretisation,
     HyperelasticProblem,
     LoadStepping,
@@ -175,6 +177,28 @@ def test_bad_discretisation_inputs():
         HyperelasticProblem(msh, Ogden.skin(), disc=Discretisation("p2"), incompressible=True)
     with pytest.raises(InputError, match="stretch"):
         cube_stress_curve(Ogden.skin(), "uniaxial", [-0.5], comm=MPI.COMM_SELF)
+
+
+def test_small_meshes_compile_at_O0_and_larger_ones_at_the_defaults():
+    # the verification cubes' Ogden kernels compile in seconds at -O0 instead of minutes at -O2
+    small = HyperelasticProblem(unit_cube(MPI.COMM_SELF, 2), Ogden.skin(),
+                                disc=Discretisation("taylor-hood"))
+    assert small.jit_params == FAST_COMPILE
+    assert unit_cube(MPI.COMM_SELF, 4).topology.index_map(3).size_global > \
+        FAST_COMPILE_MAX_CELLS
+    large = HyperelasticProblem(unit_cube(MPI.COMM_SELF, 4), Ogden.skin())
+    assert large.jit_params == {}
+    chosen = HyperelasticProblem(unit_cube(MPI.COMM_SELF, 1), Ogden.skin(), jit_params={})
+    assert chosen.jit_params == {}
+    # the same numbers either way (a small kernel: an Ogden one at -O2 takes minutes)
+    reactions = []
+    for params in (None, {}):
+        prob = HyperelasticProblem(unit_cube(MPI.COMM_SELF, 2), NeoHookean.from_E_nu(1.0, 0.45),
+                                   disc=Discretisation("p2"), jit_params=params)
+        prob.w.interpolate(lambda x: np.vstack([0.1 * x[0] ** 2, -0.04 * x[1], -0.04 * x[2]]))
+        reactions.append(prob.reaction(_facets(prob.mesh, 0, 1.0)))
+    assert np.abs(reactions[0]).max() > 1e-3
+    np.testing.assert_allclose(reactions[0], reactions[1], rtol=1e-12, atol=1e-15)
 
 
 def test_assign_material_does_not_recompile():
