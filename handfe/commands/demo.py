@@ -30,8 +30,8 @@ def run(args: argparse.Namespace) -> int:
     # the furthest stage of the pipeline that exists is run; earlier stages are quick checks
     if importlib.util.find_spec("handfe.commands.run") and (
             Path(__file__).resolve().parents[2] / "workflows" / "cylindrical.toml").exists():
-        # the whole-hand cylindrical grasp at the workflow's level, reduced (93k dofs): 18 min
-        # on 2 idle cores (5 Dec 2026, docs/grasp.md); `handfe run ... --mesh coarse` takes 8 min
+        # the whole-hand cylindrical grasp at the workflow's level, reduced (93k dofs): 10-12 min
+        # on 2 idle cores (6-7 Dec 2026, README); `handfe run ... --mesh coarse` takes ~8 min
         wf = str(Path(__file__).resolve().parents[2] / "workflows" / "cylindrical.toml")
         steps.append(("cylindrical power grasp, whole hand, reduced mesh", [
             "run", wf, "--mesh", "reduced", "--out", str(out / "cylindrical")]))
