@@ -244,12 +244,11 @@ class FingertipCompression:
         self.deflection = 0.0
         self._set_plate(0.0)
         import ufl
-        from dolfinx import fem
 
         ds = ufl.Measure("ds", domain=self.fm.mesh, subdomain_data=self.fm.facet_tags,
                          metadata=self.problem.ds_metadata)
         t = self.contact.terms
-        self._force_form = fem.form(t.pressure * t.area_factor * ds(tags["pad"]))
+        self._force_form = self.problem.form(t.pressure * t.area_factor * ds(tags["pad"]))
         self.results: list[Any] = []
 
     # -- geometry of the plate --------------------------------------------------------------
