@@ -13,6 +13,7 @@ key (dotted path) and the value. Ranges are declared in the field metadata::
 from __future__ import annotations
 
 import dataclasses
+import json
 import tomllib
 import types
 import typing
@@ -23,6 +24,12 @@ from typing import Any, TypeVar
 from handfe.errors import ConfigError
 
 T = TypeVar("T")
+
+
+def toml_string(s: str) -> str:
+    """``s`` as a TOML basic string (quotes, backslashes, newlines and non-ASCII escaped;
+    JSON's string escapes are a subset of TOML's), so ``tomllib`` reads back ``s``."""
+    return json.dumps(s)
 
 
 def bounds(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,

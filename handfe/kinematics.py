@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from handfe.config import choices, load_toml
+from handfe.config import choices, load_toml, toml_string
 from handfe.errors import InputError
 from handfe.paths import ANATOMY_DIR
 
@@ -111,7 +111,7 @@ class Pose:
         """TOML text that :meth:`from_toml` reads back (all 27 DOFs, table order)."""
         lines = []
         if description:
-            lines.append(f"description = {_toml_str(description)}")
+            lines.append(f"description = {toml_string(description)}")
         lines.append("")
         lines.append("[angles]  # deg for rotations, mm for translations (anatomy/joints.csv)")
         lines += [f"{k} = {v:.3f}" for k, v in self.as_dict().items()]
@@ -122,10 +122,6 @@ class Pose:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(self.to_toml(description))
         return p
-
-
-def _toml_str(s: str) -> str:
-    return '"' + s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", " ") + '"'
 
 
 # ----------------------------------------------------------------------------- data glove

@@ -1,11 +1,12 @@
 """TOML -> typed dataclass loading: unknown keys, wrong types, ranges are rejected with the
 file, key and value in the message."""
 
+import tomllib
 from dataclasses import dataclass, field
 
 import pytest
 
-from handfe.config import bounds, choices, from_dict, load
+from handfe.config import bounds, choices, from_dict, load, toml_string
 from handfe.errors import ConfigError
 
 
@@ -57,3 +58,9 @@ def test_missing_file(tmp_path):
 def test_from_dict_source_label():
     with pytest.raises(ConfigError, match="<cli>: unknown key 'x'"):
         from_dict(Scene, {"name": "a", "x": 1}, source="<cli>")
+
+
+@pytest.mark.parametrize("text", ['plain', 'a "quoted" pose', "back\\slash", "two\nlines\ttab",
+                                  "caf\u00e9 \u00b5m", "ctrl\x01", ""])
+def test_toml_string_reads_back(text):
+    assert tomllib.loads(f"k = {toml_string(text)}")["k"] == text

@@ -6,13 +6,12 @@ radial, y distal, z palmar; mm), see docs/anatomy.md."""
 
 from __future__ import annotations
 
-import json
 import os
 import tomllib
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from handfe.config import bounds, choices, from_dict, load, load_toml
+from handfe.config import bounds, choices, from_dict, load, load_toml, toml_string
 from handfe.errors import ConfigError
 from handfe.kinematics import DIGITS
 from handfe.paths import GRASPS_DIR, REPO_ROOT, WORKFLOWS_DIR
@@ -428,7 +427,7 @@ def workflow_toml(wf: Workflow) -> str:
         if isinstance(v, bool):
             return "true" if v else "false"
         if isinstance(v, str):
-            return json.dumps(v)  # a TOML basic string for these values
+            return toml_string(v)
         if isinstance(v, list | tuple):
             return "[" + ", ".join(value(x) for x in v) + "]"
         return repr(v)
