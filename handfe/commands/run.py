@@ -26,8 +26,10 @@ Loading:
            solver.muscle_stall_rtol = 3e-4 more (workflows/cylindrical_muscles_reduced.toml,
            "done" in 46 min). Earlier runs ended "unbalanced" (object vs support 6e-5
            where the final FE solves stalled) or failed in the final Uzawa phase; with
-           that recipe the ball balanced the full load but failed its final Uzawa phase,
-           and the pinch reached 38-53 % of it, its index pad sliding at the friction
+           that recipe the ball balanced the full load but failed its final Uzawa phase;
+           with solver.inversion_guard = 0.5 and solver.muscle_stall_rtol = 1e-3 more it
+           runs to the end (workflows/spherical_muscles.toml, "done" in 38 min at coarse);
+           the pinch reached 38-53 % of it, its index pad sliding at the friction
            limit (docs/grasp.md);
            a run that gives up writes the last balanced load's results, marked partial;
            docs/grasp.md (README: Grasp status).

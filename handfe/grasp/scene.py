@@ -188,16 +188,68 @@ def balance_problems(summary: Mapping[str, Any], mode: str, torque_rtol: float) 
     return out
 
 
-#: the [solver] keys with which the muscle-driven cylinder at 'reduced' ran to the end
-#: (workflows/cylindrical_muscles_reduced.toml; docs/grasp.md, thirty-seventh session)
-REDUCED_CYLINDER_STALL_RTOL = 3e-4
-REDUCED_CYLINDER_KEYS = "solver.guard_damping = true and solver.muscle_stall_rtol >= 3e-4"
+@dataclass(frozen=True)
+class FullLoadRecipe:
+    """The [solver] keys with which the muscle-driven mode has run to the end ('done') at the
+    full EMG load on one grasp and mesh level (at least these values; ``workflow`` ships
+    them). No keys: any solver settings."""
 
+    workflow: str
+    guard_damping: bool = False
+    muscle_stall_rtol: float = 0.0
+    inversion_guard: float = 0.0
+
+    def keys(self) -> str:
+        """The keys in words ("" when none are needed)."""
+        parts = (["solver.guard_damping = true"] if self.guard_damping else []) + [
+            f"solver.{k} >= {_num(v)}" for k, v in (("muscle_stall_rtol", self.muscle_stall_rtol),
+                                                ("inversion_guard", self.inversion_guard))
+            if v > 0.0]
+        return " and ".join(parts)
+
+    def met_by(self, solver: SolverSpec | None) -> bool:
+        if not self.keys():
+            return True
+        return solver is not None and (solver.guard_damping or not self.guard_damping) \
+            and solver.muscle_stall_rtol >= self.muscle_stall_rtol \
+            and solver.inversion_guard >= self.inversion_guard
+
+
+def _num(v: float) -> str:
+    """3e-4, not 0.0003; 0.5 as it is."""
+    return f"{v:g}" if v >= 0.01 else f"{v:.0e}".replace("e-0", "e-")
+
+
+#: (grasp, mesh level) -> what ran to the end at the full EMG load there (docs/grasp.md:
+#: cylinder coarse, twenty-second session; reduced, thirty-seventh; ball, forty-second)
+FULL_LOAD_RECIPES = {
+    ("cylindrical", "coarse"): FullLoadRecipe("cylindrical_muscles.toml"),
+    ("cylindrical", "reduced"): FullLoadRecipe("cylindrical_muscles_reduced.toml",
+                                               guard_damping=True, muscle_stall_rtol=3e-4),
+    ("spherical", "coarse"): FullLoadRecipe("spherical_muscles.toml", guard_damping=True,
+                                            muscle_stall_rtol=1e-3, inversion_guard=0.5),
+}
 
 #: (grasp, mesh level) -> the largest workflow muscle_force_scale at which the muscle-driven
 #: mode has run to the end there with the shipped recipe's keys where the full load has not
 #: (docs/grasp.md, thirty-ninth session)
 LIGHT_MUSCLE_RUNS_DONE = {("precision", "coarse"): 0.1, ("spherical", "coarse"): 0.1}
+
+#: what the other (grasp, level) pairs, or those pairs without their recipe's keys, showed
+_MUSCLES_SEEN = {
+    ("cylindrical", "reduced"): "failed the first quarter of the load after ~40 min on 2 ranks "
+                                "without solver.guard_damping (skin cells under the pads trade "
+                                "volume), and its final contact phase with "
+                                "solver.muscle_stall_rtol = 1e-4",
+    ("spherical", "coarse"): "balanced the full load but failed its final contact phase with "
+                             "solver.inversion_guard = 0.1 (fat cells between bone and ball "
+                             "collapse) and with 0.5 and solver.muscle_stall_rtol = 3e-4 (the "
+                             "little finger's torque steps stall at contact kinks)",
+    ("precision", "coarse"): "reached 38-53 % of the load (the index pad slides at the "
+                             "friction limit, mu 0.74, and its PIP torque does not balance; at "
+                             "muscle_force_scale = 0.25, 77 %; with a grasp friction of 1.2 "
+                             "that load ran to the end)",
+}
 
 
 def muscles_mode_caveat(mode: str, grasp: str, level: str,
@@ -206,37 +258,23 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
     keys and muscle force scale, when that is less than a finished run ("" otherwise, and in
     the angles mode): said before the run, so nobody waits 40 minutes for a failure that is
     already known (docs/grasp.md)."""
-    if mode != "muscles" or (grasp == "cylindrical" and level == "coarse"):
+    if mode != "muscles":
+        return ""
+    recipe = FULL_LOAD_RECIPES.get((grasp, level))
+    if recipe is not None and recipe.met_by(solver):
         return ""
     light = LIGHT_MUSCLE_RUNS_DONE.get((grasp, level))
     if light is not None and force_scale <= light:
         return ""
-    reduced_keys = solver is not None and solver.guard_damping \
-        and solver.muscle_stall_rtol >= REDUCED_CYLINDER_STALL_RTOL
-    if grasp == "cylindrical" and level == "reduced" and reduced_keys:
-        return ""
-    known = {("cylindrical", "reduced"): "failed the first quarter of the load after ~40 min on "
-                                         "2 ranks without solver.guard_damping (skin cells "
-                                         "under the pads trade volume), and its final contact "
-                                         "phase with solver.muscle_stall_rtol = 1e-4",
-             ("spherical", "coarse"): "balanced the full load but failed its final contact "
-                                      "phase (fat cells between bone and ball collapse; at "
-                                      "muscle_force_scale = 0.25 that phase cycled without "
-                                      "converging; with a grasp friction of 1.2 it ran to "
-                                      "the end)",
-             ("precision", "coarse"): "reached 38-53 % of the load (the index pad slides "
-                                      "at the friction limit, mu 0.74, and its PIP torque "
-                                      "does not balance; at muscle_force_scale = 0.25, "
-                                      "77 %; with a grasp friction of 1.2 that load ran to "
-                                      "the end)"}
-    seen = known.get((grasp, level), "has not been run")
+    seen = _MUSCLES_SEEN.get((grasp, level), "has not been run")
     if light is not None:
         seen += f" (at muscle_force_scale <= {light:g} it ran to the end)"
-    return (f"at the full EMG load the muscle-driven mode has run to the end ('done') only on "
-            f"the cylinder, at mesh 'coarse' and at 'reduced' with {REDUCED_CYLINDER_KEYS} "
-            f"(workflows/cylindrical_muscles_reduced.toml); {grasp} at '{level}' {seen} "
-            "(docs/grasp.md); a run that gives up writes the last balanced load's results, "
-            "marked partial")
+    done = "; ".join(f"{g} at '{lv}'" + (f" with {r.keys()}" if r.keys() else "")
+                     + f" (workflows/{r.workflow})"
+                     for (g, lv), r in FULL_LOAD_RECIPES.items())
+    return (f"at the full EMG load the muscle-driven mode has run to the end ('done') only "
+            f"as: {done}; {grasp} at '{level}' {seen} (docs/grasp.md); a run that gives up "
+            "writes the last balanced load's results, marked partial")
 
 
 def _peak_rss_GB() -> float:
