@@ -244,7 +244,9 @@ _MUSCLES_SEEN = {
     ("spherical", "coarse"): "balanced the full load but failed its final contact phase with "
                              "solver.inversion_guard = 0.1 (fat cells between bone and ball "
                              "collapse) and with 0.5 and solver.muscle_stall_rtol = 3e-4 (the "
-                             "little finger's torque steps stall at contact kinks)",
+                             "little finger's torque steps stall at contact kinks); at "
+                             "muscle_force_scale = 0.25 that phase cycled without converging "
+                             "(with a grasp friction of 1.2 it ran to the end)",
     ("precision", "coarse"): "reached 38-53 % of the load (the index pad slides at the "
                              "friction limit, mu 0.74, and its PIP torque does not balance; at "
                              "muscle_force_scale = 0.25, 77 %; with a grasp friction of 1.2 "
