@@ -199,20 +199,21 @@ class FullLoadRecipe:
     muscle_stall_rtol: float = 0.0
     inversion_guard: float = 0.0
 
+    def _needs(self) -> list[tuple[str, float]]:
+        """(key, least value) of each [solver] key the recipe needs (a bool as 0 / 1)."""
+        return [(k, v) for k, v in (("guard_damping", self.guard_damping),
+                                    ("muscle_stall_rtol", self.muscle_stall_rtol),
+                                    ("inversion_guard", self.inversion_guard)) if v]
+
     def keys(self) -> str:
         """The keys in words ("" when none are needed)."""
-        parts = (["solver.guard_damping = true"] if self.guard_damping else []) + [
-            f"solver.{k} >= {_num(v)}" for k, v in (("muscle_stall_rtol", self.muscle_stall_rtol),
-                                                ("inversion_guard", self.inversion_guard))
-            if v > 0.0]
-        return " and ".join(parts)
+        return " and ".join("solver.guard_damping = true" if k == "guard_damping"
+                            else f"solver.{k} >= {_num(v)}" for k, v in self._needs())
 
     def met_by(self, solver: SolverSpec | None) -> bool:
-        if not self.keys():
-            return True
-        return solver is not None and (solver.guard_damping or not self.guard_damping) \
-            and solver.muscle_stall_rtol >= self.muscle_stall_rtol \
-            and solver.inversion_guard >= self.inversion_guard
+        needs = self._needs()
+        return not needs or (solver is not None
+                             and all(getattr(solver, k) >= v for k, v in needs))
 
 
 def _num(v: float) -> str:
