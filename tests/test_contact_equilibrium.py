@@ -23,25 +23,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from mpi4py import MPI
+from test_friction import _block  # the same 4 x 4 x 1 mm block; pytest puts tests/ on sys.path
 
-L_MM, H_MM = 4.0, 1.0
 DELTA, SLIDE = 0.1, 0.3  # mm
 PEN_TOL = 2e-4  # mm
-
-
-def _block(comm):
-    from dolfinx import mesh
-
-    msh = mesh.create_box(comm, [np.array([-L_MM / 2, -L_MM / 2, 0.0]),
-                                 np.array([L_MM / 2, L_MM / 2, H_MM])], [4, 4, 2],
-                          mesh.CellType.tetrahedron)
-    fdim = 2
-    bot = mesh.locate_entities_boundary(msh, fdim, lambda x: np.isclose(x[2], 0.0))
-    top = mesh.locate_entities_boundary(msh, fdim, lambda x: np.isclose(x[2], H_MM))
-    idx = np.concatenate([bot, top]).astype(np.int32)
-    val = np.concatenate([np.full(len(bot), 1), np.full(len(top), 2)]).astype(np.int32)
-    order = np.argsort(idx)
-    return msh, mesh.meshtags(msh, fdim, idx[order], val[order])
 
 
 def _scene(mu: float, comm, pen_tol: float = PEN_TOL, disc: str = "p2",
