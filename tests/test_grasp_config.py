@@ -9,9 +9,9 @@ import pytest
 
 from handfe.anatomy import load_subject
 from handfe.anatomy.meshing import SurfaceData
-from handfe.errors import ConfigError
+from handfe.errors import ConfigError, InputError
 from handfe.grasp import load_workflow
-from handfe.grasp.config import ObjectSpec
+from handfe.grasp.config import ObjectSpec, parse_overrides
 from handfe.grasp.mechanics import (
     DigitArc,
     Kinematics,
@@ -145,8 +145,6 @@ def test_a_bad_base_is_named_with_its_file(tmp_path):
 def test_set_overrides_change_the_named_keys_only():
     """``handfe run --set KEY=VALUE`` (``parse_overrides``): values read as TOML (a bare word as
     a string), [solver] keys one by one over the file's; the rest of the workflow unchanged."""
-    from handfe.grasp.config import parse_overrides
-
     over = parse_overrides(["solver.guard_damping=true", "solver.muscle_stall_rtol=3e-4",
                             "mesh=reduced", 'solver.stabilisation_modulus="pressure"',
                             "solver.muscle_final_uzawa=interleaved"])
@@ -464,6 +462,53 @@ def test_muscle_torques_sum_shares_and_arms():
     tq = muscle_torques({"FDP": 100.0, "FDS": 0.0}, joints)
     # FDP share 1/4 per finger, moment arms 11.0 / 7.5 / 4.5 mm (anatomy/moment_arms.csv)
     np.testing.assert_allclose(tq, [25 * 11.0, 25 * 7.5, 25 * 4.5])
+
+
+def test_tendon_splits_share_each_muscle_whole_and_scale_the_torques():
+    """Every workflow tendon_split gives each muscle's tendons shares summing to 1; the
+    holzbaur2005 split is the compartments' peak forces over their sum (anatomy/tendon_splits.csv:
+    little FDS 75.3 / 667.8 N, FDP 236.8 / 819.4 N), so the little finger's FDS torque falls
+    by that share over 1/4 and its FDP torque rises likewise; the thumb's muscles keep theirs."""
+    from handfe.anatomy.tables import TENDON_SPLITS, tendon_shares
+
+    for split in TENDON_SPLITS:
+        shares = tendon_shares(split)
+        for m in {m for m, _d in shares}:
+            assert sum(v for (mm, _d), v in shares.items() if mm == m) == pytest.approx(1.0)
+    holz = tendon_shares("holzbaur2005")
+    assert holz["FDS", "little"] == pytest.approx(75.3 / 667.8)
+    assert holz["FDP", "middle"] == pytest.approx(212.4 / 819.4)
+    joints = released_joints(("thumb", "little"))
+    for m, ratio in (("FDS", 75.3 / 667.8 / 0.25), ("FDP", 236.8 / 819.4 / 0.25),
+                     ("AP", 1.0)):
+        eq = muscle_torques({m: 100.0}, joints)
+        np.testing.assert_allclose(muscle_torques({m: 100.0}, joints, "holzbaur2005"),
+                                   eq * ratio, rtol=1e-12)
+        assert np.abs(eq).max() > 0.0
+
+
+def test_a_tendon_split_is_checked(tmp_path):
+    """An unknown split is refused naming the file, the key and the value; a split belongs to
+    the muscles mode; a split table that leaves out a digit a muscle inserts on is refused."""
+    from handfe.anatomy.tables import tendon_shares
+
+    p = _write(tmp_path, 'grasp = "spherical"\nloading = "muscles"\ntendon_split = "brand"\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'tendon_split' = 'brand'"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "spherical"\ntendon_split = "holzbaur2005"\n')
+    with pytest.raises(ConfigError, match=r"'tendon_split' = 'holzbaur2005'.*loading = 'angles'"):
+        load_workflow(p)
+    assert load_workflow("spherical_muscles", parse_overrides(
+        ["tendon_split=holzbaur2005"])).tendon_split == "holzbaur2005"
+    d = tmp_path / "anatomy"
+    d.mkdir()
+    (d / "insertions.csv").write_text((REPO_ROOT / "anatomy" / "insertions.csv").read_text())
+    (d / "tendon_splits.csv").write_text("split,muscle,digit,weight,source\n"
+                                         "x,FDS,index,1,t\nx,FDS,middle,1,t\n")
+    with pytest.raises(InputError, match=r"tendon_splits\.csv: split 'x' gives FDS .*little"):
+        tendon_shares("x", str(d))
+    with pytest.raises(InputError, match=r"no tendon split 'y' \(known: equal, x\)"):
+        tendon_shares("y", str(d))
 
 
 def test_bone_motions_identity_and_rotation():

@@ -147,6 +147,41 @@ def insertions(directory: str | None = None) -> tuple[InsertionRow, ...]:
                  for r in _rows(path))
 
 
+#: workflow ``tendon_split`` values: "equal" is anatomy/insertions.csv's ``share``; the others
+#: are named splits of anatomy/tendon_splits.csv
+TENDON_SPLITS = ("equal", "holzbaur2005")
+
+
+def tendon_shares(split: str = "equal", directory: str | None = None
+                  ) -> dict[tuple[str, str], float]:
+    """(muscle, digit) -> the share of the muscle's force its tendon on that digit carries.
+
+    ``"equal"``: insertions.csv's ``share`` column (FDS, FDP: 1/4 per finger). Another name: its
+    rows of tendon_splits.csv (weights normalised per muscle) over those shares; a muscle it
+    does not list keeps them. A split must give a listed muscle to every digit it inserts on."""
+    shares = {(r.muscle, r.digit): r.share for r in insertions(directory)}
+    if split == "equal":
+        return shares
+    path = Path(directory or ANATOMY_DIR) / "tendon_splits.csv"
+    rows = _rows(path)
+    weights: dict[str, dict[str, float]] = {}
+    for r in rows:
+        if r["split"] == split:
+            weights.setdefault(r["muscle"], {})[r["digit"]] = _f(r, "weight", path)
+    if not weights:
+        known = sorted({r["split"] for r in rows} | {"equal"})
+        raise InputError(f"{path}: no tendon split {split!r} (known: {', '.join(known)})")
+    for muscle, w in weights.items():
+        digits = {d for (m, d) in shares if m == muscle}
+        if set(w) != digits or min(w.values()) < 0.0 or sum(w.values()) <= 0.0:
+            raise InputError(f"{path}: split {split!r} gives {muscle} the weights {w}; it needs "
+                             "one weight >= 0 per digit it inserts on "
+                             f"({', '.join(sorted(digits))}), not all 0")
+        total = sum(w.values())
+        shares.update({(muscle, d): v / total for d, v in w.items()})
+    return shares
+
+
 def ligament_force_N(length_mm: float, slack_length_mm: float, k_N_per_mm: float,
                      eps_toe: float) -> float:
     """Tensile force (N, >= 0) of a ligament spring at ``length_mm`` (Blankevoort & Huiskes 1991):

@@ -44,17 +44,20 @@ Loading:
            muscle_force_scale (default 1) multiplies every EMG muscle force: a lighter grip
            than measured (e.g. --set muscle_force_scale=0.1); at 0.1 the pinch and the ball
            run to the end at coarse (workflows/precision_muscles_light.toml, 4 min, and
-           spherical_muscles_light.toml, 11 min, on 2 cores)
+           spherical_muscles_light.toml, 11 min, on 2 cores). tendon_split: how FDS's and
+           FDP's forces split between digits 2-5: "equal" (default, 1/4 each) or
+           "holzbaur2005" (each compartment's peak isometric force: little finger FDS 0.11,
+           FDP 0.29; anatomy/tendon_splits.csv)
   angles   (default) each participating digit closes from the pre-closed posture until it
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
            bring the penetration to <= 0.01 mm
 
-Workflow file: subject, grasp, trial, loading, muscle_force_scale, mesh, element, base;
-tables [solver] and [outputs] (each key with its range and why: handfe/grasp/config.py; an
-unknown key or a value out of range is refused, naming the file and the key). base =
-"NAME" (a workflow in workflows/, or a path relative to the file or to the repository)
-starts from every key of that workflow; the file's own keys replace them, [solver] and
-[outputs] key by key (e.g. workflows/cylindrical_muscles_reduced.toml =
+Workflow file: subject, grasp, trial, loading, muscle_force_scale, tendon_split, mesh,
+element, base; tables [solver] and [outputs] (each key with its range and why:
+handfe/grasp/config.py; an unknown key or a value out of range is refused, naming the file
+and the key). base = "NAME" (a workflow in workflows/, or a path relative to the file or
+to the repository) starts from every key of that workflow; the file's own keys replace
+them, [solver] and [outputs] key by key (e.g. workflows/cylindrical_muscles_reduced.toml =
 cylindrical_muscles.toml + 3 keys). --set KEY=VALUE changes a key for one run without a
 file; --show prints every key a run would use.
 

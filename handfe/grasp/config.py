@@ -11,6 +11,7 @@ import tomllib
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+from handfe.anatomy.tables import TENDON_SPLITS
 from handfe.config import bounds, choices, from_dict, load, load_toml, toml_string
 from handfe.errors import ConfigError
 from handfe.kinematics import DIGITS
@@ -269,6 +270,10 @@ class Workflow:
     # ball run to the end at coarse, where the full load fails (docs/grasp.md, thirty-ninth
     # session; workflows/*_muscles_light.toml); the angles mode does not use it
     muscle_force_scale: float = field(default=1.0, metadata=bounds(0.01, 2.0))
+    # muscles mode: how FDS's and FDP's forces split between digits 2-5. "equal" (1/4 each,
+    # anatomy/insertions.csv); "holzbaur2005": in proportion to each compartment's peak
+    # isometric force (little finger FDS 0.11, FDP 0.29; anatomy/tendon_splits.csv)
+    tendon_split: str = field(default="equal", metadata=choices(*TENDON_SPLITS))
     mesh: str = field(default="reduced", metadata=choices(*MESH_LEVELS))
     # p1-p1s: P1-P1 u-p with pressure stabilisation (locking-free, default); p1-p0: the hybrid
     # linear tet (locks on tets, see docs/grasp.md); taylor-hood: P2-P1 (reference, ~8x dofs)
@@ -358,6 +363,9 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
     if wf.muscle_force_scale != 1.0 and wf.loading != "muscles":
         raise ConfigError(f"{src}: 'muscle_force_scale' = {wf.muscle_force_scale:g} scales the "
                           f"muscles mode's loads; loading = {wf.loading!r} does not use them")
+    if wf.tendon_split != "equal" and wf.loading != "muscles":
+        raise ConfigError(f"{src}: 'tendon_split' = {wf.tendon_split!r} splits the muscles "
+                          f"mode's loads; loading = {wf.loading!r} does not use them")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
         raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
                           f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from handfe.anatomy.skeleton import JOINT_NAMES, Skeleton, build_skeleton
-from handfe.anatomy.tables import CARPALS, DIGIT_BONES
+from handfe.anatomy.tables import CARPALS, DIGIT_BONES, tendon_shares
 from handfe.errors import InputError
 from handfe.kinematics import Pose, joint_table
 from handfe.paths import ANATOMY_DIR
@@ -32,14 +32,6 @@ def moment_arms() -> dict[tuple[str, str], float]:
     with path.open() as fh:
         rows = csv.DictReader(line for line in fh if not line.startswith("#"))
         return {(r["muscle"], r["joint"]): float(r["moment_arm_mm"]) for r in rows}
-
-
-def insertion_shares() -> dict[tuple[str, str], float]:
-    """(muscle, digit) -> share of the muscle force (anatomy/insertions.csv)."""
-    path = ANATOMY_DIR / "insertions.csv"
-    with path.open() as fh:
-        rows = csv.DictReader(line for line in fh if not line.startswith("#"))
-        return {(r["muscle"], r["digit"]): float(r["share"]) for r in rows}
 
 
 @dataclass(frozen=True)
@@ -158,9 +150,11 @@ class Ligaments:
         return out
 
 
-def muscle_torques(forces_N: dict[str, float], joints: list[Joint]) -> np.ndarray:
-    """Muscle torque (N mm) about each released joint: sum of F * share * moment arm."""
-    arms, shares = moment_arms(), insertion_shares()
+def muscle_torques(forces_N: dict[str, float], joints: list[Joint],
+                   tendon_split: str = "equal") -> np.ndarray:
+    """Muscle torque (N mm) about each released joint: sum of F * share * moment arm, the
+    shares of ``tendon_split`` (:func:`handfe.anatomy.tables.tendon_shares`)."""
+    arms, shares = moment_arms(), tendon_shares(tendon_split)
     out = np.zeros(len(joints))
     for i, j in enumerate(joints):
         for m, F in forces_N.items():

@@ -360,11 +360,18 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         forces = {m: f * wf.muscle_force_scale * scale.get(m, 1.0) for m, f in forces.items()}
         summary.update(pose_source=pose_src, opening_deg=grasp.opening_deg,
                        muscle_forces_N=forces, muscle_force_scale=wf.muscle_force_scale,
-                       muscle_scale=scale)
+                       muscle_scale=scale, tendon_split=wf.tendon_split)
         stages["posture_emg"] = time.perf_counter() - t0
         of = f" ({wf.muscle_force_scale:g} x EMG)" if wf.muscle_force_scale != 1.0 else ""
         say(f"{grasp.name}: posture from {pose_src}; muscle forces{of} "
             + ", ".join(f"{m} {f:.0f} N" for m, f in forces.items()))
+        if mode == "muscles" and wf.tendon_split != "equal":
+            from handfe.anatomy.tables import tendon_shares
+
+            shares, fingers = tendon_shares(wf.tendon_split), ("index", "middle", "ring", "little")
+            say(f"tendon split {wf.tendon_split} (index / middle / ring / little): " + "; ".join(
+                f"{m} " + " / ".join(f"{shares[m, d]:.3f}" for d in fingers)
+                for m in ("FDS", "FDP")))
         # a per-muscle factor above 1 (sensitivity) takes that muscle past the scale run
         caveat = muscles_mode_caveat(mode, grasp.name, level, wf.solver,
                                      wf.muscle_force_scale * max([1.0, *scale.values()]))
@@ -843,7 +850,7 @@ class GraspFE:
         self.theta_measured = np.array([m[j.dof] for j in self.joints])
         self.lig = Ligaments(self.kin.skel0, set(bones))
         self.forces = forces
-        self.tau_muscle = muscle_torques(forces, self.joints)
+        self.tau_muscle = muscle_torques(forces, self.joints, wf.tendon_split)
         self.theta = self.kin.theta0.copy()
         self.motions = self.kin.motions(self.kin.skel0)
         self.steps: list[dict] = []
