@@ -28,7 +28,8 @@ Loading:
            where the final FE solves stalled) or failed in the final Uzawa phase; with
            that recipe the ball balanced the full load but failed its final Uzawa phase;
            with solver.inversion_guard = 0.5 and solver.muscle_stall_rtol = 1e-3 more it
-           runs to the end (workflows/spherical_muscles.toml, "done" in 38 min at coarse);
+           ran to the end in one of two whole runs (workflows/spherical_muscles.toml, "done"
+           in 38 min at coarse; the other failed after 68 min);
            the pinch reached 38-53 % of it, its index pad sliding at the friction
            limit (docs/grasp.md);
            a run that gives up writes the last balanced load's results, marked partial;

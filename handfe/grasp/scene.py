@@ -192,12 +192,14 @@ def balance_problems(summary: Mapping[str, Any], mode: str, torque_rtol: float) 
 class FullLoadRecipe:
     """The [solver] keys with which the muscle-driven mode has run to the end ('done') at the
     full EMG load on one grasp and mesh level (at least these values; ``workflow`` ships
-    them). No keys: any solver settings."""
+    them). No keys: any solver settings. ``record``: what its whole runs did, when not every
+    one ran to the end (said before a run with these keys too)."""
 
     workflow: str
     guard_damping: bool = False
     muscle_stall_rtol: float = 0.0
     inversion_guard: float = 0.0
+    record: str = ""
 
     def _needs(self) -> list[tuple[str, float]]:
         """(key, least value) of each [solver] key the recipe needs (a bool as 0 / 1)."""
@@ -227,8 +229,13 @@ FULL_LOAD_RECIPES = {
     ("cylindrical", "coarse"): FullLoadRecipe("cylindrical_muscles.toml"),
     ("cylindrical", "reduced"): FullLoadRecipe("cylindrical_muscles_reduced.toml",
                                                guard_damping=True, muscle_stall_rtol=3e-4),
-    ("spherical", "coarse"): FullLoadRecipe("spherical_muscles.toml", guard_damping=True,
-                                            muscle_stall_rtol=1e-3, inversion_guard=0.5),
+    ("spherical", "coarse"): FullLoadRecipe(
+        "spherical_muscles.toml", guard_damping=True, muscle_stall_rtol=1e-3,
+        inversion_guard=0.5,
+        record="ran to the end in one of two whole runs on 2 ranks (38 min); the other "
+               "failed its final contact phase after 68 min, 0.02 mm from the ball, the "
+               "little finger's torque steps failing through their cuts (round-off changes "
+               "the path from run to run; forty-second and forty-third sessions)"),
 }
 
 #: (grasp, mesh level) -> the largest workflow muscle_force_scale at which the muscle-driven
@@ -265,7 +272,9 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
         return ""
     recipe = FULL_LOAD_RECIPES.get((grasp, level))
     if recipe is not None and recipe.met_by(solver):
-        return ""
+        return (f"with the keys of workflows/{recipe.workflow} the muscle-driven {grasp} grasp "
+                f"at '{level}' {recipe.record}; see docs/grasp.md; a run that gives up writes "
+                "the last balanced load's results, marked partial") if recipe.record else ""
     light = LIGHT_MUSCLE_RUNS_DONE.get((grasp, level))
     if light is not None and force_scale <= light:
         return ""
