@@ -235,7 +235,10 @@ FULL_LOAD_RECIPES = {
         record="ran to the end in one of two whole runs on 2 ranks (38 min); the other "
                "failed its final contact phase after 68 min, 0.02 mm from the ball, the "
                "little finger's torque steps failing through their cuts (round-off changes "
-               "the path from run to run; forty-second and forty-third sessions)"),
+               "the path from run to run; forty-second and forty-third sessions); with "
+               "tendon_split = 'holzbaur2005' (workflows/spherical_muscles_holzbaur.toml, the "
+               "little finger's torques ~27 % lower) both of two whole runs did, in 18-19 "
+               "min"),
 }
 
 #: (grasp, mesh level) -> the largest workflow muscle_force_scale at which the muscle-driven
