@@ -172,15 +172,11 @@ def test_set_overrides_change_the_named_keys_only():
     ("mesh.level=coarse", r"--set: 'mesh' = \{'level': 'coarse'\}: expected a string"),
 ])
 def test_bad_set_overrides_are_named(item, message):
-    from handfe.grasp.config import parse_overrides
-
     with pytest.raises(ConfigError, match=message):
         parse_overrides([item])
 
 
 def test_set_overrides_that_clash_with_the_file_name_both():
-    from handfe.grasp.config import parse_overrides
-
     with pytest.raises(ConfigError, match=r"precision\.toml with --set: 'solver\.guard_damping'"):
         load_workflow("precision", parse_overrides(["solver.guard_damping=true"]))
 
@@ -199,7 +195,7 @@ def test_show_prints_every_key_as_a_workflow_that_loads_back(tmp_path, capsys):
     """``handfe run FILE --show`` (``workflow_toml``): the keys after base, --set, --mesh and
     --loading, as a TOML that loads to the same workflow; no run, no --out needed."""
     from handfe.cli import main
-    from handfe.grasp.config import parse_overrides, workflow_toml
+    from handfe.grasp.config import workflow_toml
 
     wf = load_workflow("cylindrical_muscles_reduced",
                        parse_overrides(["solver.nu=0.4999", 'solver.friction_smoothing=0.05']))
@@ -250,7 +246,6 @@ def test_muscle_force_scale_is_checked_and_belongs_to_the_muscles_mode(tmp_path)
     p = _write(tmp_path, 'grasp = "precision"\nmuscle_force_scale = 0.5\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*'muscle_force_scale' = 0\.5.*'angles'"):
         load_workflow(p)
-    from handfe.grasp.config import parse_overrides
 
     # by --set on a muscle-driven recipe, as a user would lighten it for one run
     wf = load_workflow("cylindrical_muscles", parse_overrides(
