@@ -264,6 +264,8 @@ _MUSCLES_SEEN = {
                              "that load ran to the end)",
 }
 
+_GIVES_UP = "a run that gives up writes the last balanced load's results, marked partial"
+
 
 def muscles_mode_caveat(mode: str, grasp: str, level: str,
                         solver: SolverSpec | None = None, force_scale: float = 1.0) -> str:
@@ -276,8 +278,8 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
     recipe = FULL_LOAD_RECIPES.get((grasp, level))
     if recipe is not None and recipe.met_by(solver):
         return (f"with the keys of workflows/{recipe.workflow} the muscle-driven {grasp} grasp "
-                f"at '{level}' {recipe.record}; see docs/grasp.md; a run that gives up writes "
-                "the last balanced load's results, marked partial") if recipe.record else ""
+                f"at '{level}' {recipe.record}; see docs/grasp.md; {_GIVES_UP}"
+                ) if recipe.record else ""
     light = LIGHT_MUSCLE_RUNS_DONE.get((grasp, level))
     if light is not None and force_scale <= light:
         return ""
@@ -288,8 +290,7 @@ def muscles_mode_caveat(mode: str, grasp: str, level: str,
                      + f" (workflows/{r.workflow})"
                      for (g, lv), r in FULL_LOAD_RECIPES.items())
     return (f"at the full EMG load the muscle-driven mode has run to the end ('done') only "
-            f"as: {done}; {grasp} at '{level}' {seen} (docs/grasp.md); a run that gives up "
-            "writes the last balanced load's results, marked partial")
+            f"as: {done}; {grasp} at '{level}' {seen} (docs/grasp.md); {_GIVES_UP}")
 
 
 def _peak_rss_GB() -> float:
@@ -378,11 +379,12 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         say(f"{grasp.name}: posture from {pose_src}; muscle forces{of} "
             + ", ".join(f"{m} {f:.0f} N" for m, f in forces.items()))
         if mode == "muscles" and wf.tendon_split != "equal":
+            from handfe.anatomy.geometry import FINGERS
             from handfe.anatomy.tables import tendon_shares
 
-            shares, fingers = tendon_shares(wf.tendon_split), ("index", "middle", "ring", "little")
-            say(f"tendon split {wf.tendon_split} (index / middle / ring / little): " + "; ".join(
-                f"{m} " + " / ".join(f"{shares[m, d]:.3f}" for d in fingers)
+            shares = tendon_shares(wf.tendon_split)
+            say(f"tendon split {wf.tendon_split} ({' / '.join(FINGERS)}): " + "; ".join(
+                f"{m} " + " / ".join(f"{shares[m, d]:.3f}" for d in FINGERS)
                 for m in ("FDS", "FDP")))
         # a per-muscle factor above 1 (sensitivity) takes that muscle past the scale run
         caveat = muscles_mode_caveat(mode, grasp.name, level, wf.solver,
