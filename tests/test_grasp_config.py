@@ -484,7 +484,8 @@ def test_tendon_splits_share_each_muscle_whole_and_scale_the_torques():
 
 def test_a_tendon_split_is_checked(tmp_path):
     """An unknown split is refused naming the file, the key and the value; a split belongs to
-    the muscles mode; a split table that leaves out a digit a muscle inserts on is refused."""
+    the muscles mode; a split table that leaves out a digit a muscle inserts on is refused;
+    the table is read once per split, each caller getting a dict of its own."""
     from handfe.anatomy.tables import tendon_shares
 
     p = _write(tmp_path, 'grasp = "spherical"\nloading = "muscles"\ntendon_split = "brand"\n')
@@ -492,6 +493,10 @@ def test_a_tendon_split_is_checked(tmp_path):
         load_workflow(p)
     p = _write(tmp_path, 'grasp = "spherical"\ntendon_split = "holzbaur2005"\n')
     with pytest.raises(ConfigError, match=r"'tendon_split' = 'holzbaur2005'.*loading = 'angles'"):
+        load_workflow(p)
+    # the key as written, whatever its value: the angles mode has no muscle loads to split
+    p = _write(tmp_path, 'grasp = "spherical"\ntendon_split = "equal"\n')
+    with pytest.raises(ConfigError, match=r"'tendon_split' = 'equal'.*loading = 'angles'"):
         load_workflow(p)
     assert load_workflow("spherical_muscles", parse_overrides(
         ["tendon_split=holzbaur2005"])).tendon_split == "holzbaur2005"
@@ -504,6 +509,9 @@ def test_a_tendon_split_is_checked(tmp_path):
         tendon_shares("x", str(d))
     with pytest.raises(InputError, match=r"no tendon split 'y' \(known: equal, x\)"):
         tendon_shares("y", str(d))
+    a = tendon_shares("holzbaur2005")
+    a["FDS", "little"] = 0.0
+    assert tendon_shares("holzbaur2005")["FDS", "little"] == pytest.approx(75.3 / 667.8)
 
 
 def test_bone_motions_identity_and_rotation():

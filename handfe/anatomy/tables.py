@@ -158,10 +158,16 @@ def tendon_shares(split: str = "equal", directory: str | None = None
 
     ``"equal"``: insertions.csv's ``share`` column (FDS, FDP: 1/4 per finger). Another name: its
     rows of tendon_splits.csv (weights normalised per muscle) over those shares; a muscle it
-    does not list keeps them. A split must give a listed muscle to every digit it inserts on."""
+    does not list keeps them. A split must give a listed muscle to every digit it inserts on.
+    The table is read once per (split, directory); each call returns a dict of its own."""
+    return dict(_tendon_shares(split, directory))
+
+
+@lru_cache(maxsize=4)
+def _tendon_shares(split: str, directory: str | None) -> tuple[tuple[tuple[str, str], float], ...]:
     shares = {(r.muscle, r.digit): r.share for r in insertions(directory)}
     if split == "equal":
-        return shares
+        return tuple(shares.items())
     path = Path(directory or ANATOMY_DIR) / "tendon_splits.csv"
     rows = _rows(path)
     weights: dict[str, dict[str, float]] = {}
@@ -179,7 +185,7 @@ def tendon_shares(split: str = "equal", directory: str | None = None
                              f"({', '.join(sorted(digits))}), not all 0")
         total = sum(w.values())
         shares.update({(muscle, d): v / total for d, v in w.items()})
-    return shares
+    return tuple(shares.items())
 
 
 def ligament_force_N(length_mm: float, slack_length_mm: float, k_N_per_mm: float,

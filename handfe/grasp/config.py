@@ -363,8 +363,10 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
     if wf.muscle_force_scale != 1.0 and wf.loading != "muscles":
         raise ConfigError(f"{src}: 'muscle_force_scale' = {wf.muscle_force_scale:g} scales the "
                           f"muscles mode's loads; loading = {wf.loading!r} does not use them")
-    if wf.tendon_split != "equal" and wf.loading != "muscles":
-        raise ConfigError(f"{src}: 'tendon_split' = {wf.tendon_split!r} splits the muscles "
+    # the key as written: the default applies to the muscles mode only
+    split = raw.get("tendon_split")
+    if split is not None and wf.loading != "muscles":
+        raise ConfigError(f"{src}: 'tendon_split' = {split!r} splits the muscles "
                           f"mode's loads; loading = {wf.loading!r} does not use them")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
         raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
