@@ -373,7 +373,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         forces = {m: f * wf.muscle_force_scale * scale.get(m, 1.0) for m, f in forces.items()}
         summary.update(pose_source=pose_src, opening_deg=grasp.opening_deg,
                        muscle_forces_N=forces, muscle_force_scale=wf.muscle_force_scale,
-                       muscle_scale=scale, tendon_split=wf.tendon_split)
+                       muscle_scale=scale,
+                       tendon_split=wf.tendon_split if mode == "muscles" else None)
         stages["posture_emg"] = time.perf_counter() - t0
         of = f" ({wf.muscle_force_scale:g} x EMG)" if wf.muscle_force_scale != 1.0 else ""
         say(f"{grasp.name}: posture from {pose_src}; muscle forces{of} "
