@@ -509,9 +509,13 @@ def test_a_tendon_split_is_checked(tmp_path):
         tendon_shares("x", str(d))
     with pytest.raises(InputError, match=r"no tendon split 'y' \(known: equal, x\)"):
         tendon_shares("y", str(d))
+    from handfe.anatomy.tables import _tendon_shares
+
     a = tendon_shares("holzbaur2005")
+    hits = _tendon_shares.cache_info().hits
     a["FDS", "little"] = 0.0
     assert tendon_shares("holzbaur2005")["FDS", "little"] == pytest.approx(75.3 / 667.8)
+    assert _tendon_shares.cache_info().hits == hits + 1  # not read again
 
 
 def test_bone_motions_identity_and_rotation():

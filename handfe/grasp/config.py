@@ -272,7 +272,8 @@ class Workflow:
     muscle_force_scale: float = field(default=1.0, metadata=bounds(0.01, 2.0))
     # muscles mode: how FDS's and FDP's forces split between digits 2-5. "equal" (1/4 each,
     # anatomy/insertions.csv); "holzbaur2005": in proportion to each compartment's peak
-    # isometric force (little finger FDS 0.11, FDP 0.29; anatomy/tendon_splits.csv)
+    # isometric force (little finger FDS 0.11, FDP 0.29; anatomy/tendon_splits.csv). Written
+    # only in a muscles-mode workflow (refused in the angles mode, whatever its value)
     tendon_split: str = field(default="equal", metadata=choices(*TENDON_SPLITS))
     mesh: str = field(default="reduced", metadata=choices(*MESH_LEVELS))
     # p1-p1s: P1-P1 u-p with pressure stabilisation (locking-free, default); p1-p0: the hybrid
@@ -363,7 +364,8 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
     if wf.muscle_force_scale != 1.0 and wf.loading != "muscles":
         raise ConfigError(f"{src}: 'muscle_force_scale' = {wf.muscle_force_scale:g} scales the "
                           f"muscles mode's loads; loading = {wf.loading!r} does not use them")
-    # the key as written: the default applies to the muscles mode only
+    # the key as written (as stabilisation_modulus above): the default is not a mistake in the
+    # angles mode, a split written into an angles workflow is, whatever its value
     split = raw.get("tendon_split")
     if split is not None and wf.loading != "muscles":
         raise ConfigError(f"{src}: 'tendon_split' = {split!r} splits the muscles "
