@@ -486,7 +486,7 @@ def test_a_tendon_split_is_checked(tmp_path):
     """An unknown split is refused naming the file, the key and the value; a split belongs to
     the muscles mode; a split table that leaves out a digit a muscle inserts on is refused;
     the table is read once per split, each caller getting a dict of its own."""
-    from handfe.anatomy.tables import tendon_shares
+    from handfe.anatomy.tables import _tendon_shares, tendon_shares
 
     p = _write(tmp_path, 'grasp = "spherical"\nloading = "muscles"\ntendon_split = "brand"\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*'tendon_split' = 'brand'"):
@@ -509,8 +509,6 @@ def test_a_tendon_split_is_checked(tmp_path):
         tendon_shares("x", str(d))
     with pytest.raises(InputError, match=r"no tendon split 'y' \(known: equal, x\)"):
         tendon_shares("y", str(d))
-    from handfe.anatomy.tables import _tendon_shares
-
     a = tendon_shares("holzbaur2005")
     hits = _tendon_shares.cache_info().hits
     a["FDS", "little"] = 0.0
