@@ -236,16 +236,19 @@ def test_guard_damping_needs_the_guard(tmp_path):
 
 def test_muscle_force_scale_is_checked_and_belongs_to_the_muscles_mode(tmp_path):
     """A lighter (or heavier) grip than the EMG estimate: every muscle force x the scale, in
-    0.01-2; the angles mode does not use muscle forces, so a scale there is refused."""
+    0.01-2; the angles mode does not use muscle forces, so a scale written there is refused."""
     p = _write(tmp_path, 'grasp = "precision"\nloading = "muscles"\nmuscle_force_scale = 0.1\n')
     assert load_workflow(p).muscle_force_scale == 0.1
     assert load_workflow("cylindrical_muscles").muscle_force_scale == 1.0
     p = _write(tmp_path, 'grasp = "precision"\nloading = "muscles"\nmuscle_force_scale = 0\n')
     with pytest.raises(ConfigError, match=r"wf\.toml.*'muscle_force_scale' = 0.*out of range"):
         load_workflow(p)
-    p = _write(tmp_path, 'grasp = "precision"\nmuscle_force_scale = 0.5\n')
-    with pytest.raises(ConfigError, match=r"wf\.toml.*'muscle_force_scale' = 0\.5.*'angles'"):
-        load_workflow(p)
+    # refused as written, whatever its value: 1.0 (the default) too
+    for text in ("0.5", "1.0"):
+        p = _write(tmp_path, f'grasp = "precision"\nmuscle_force_scale = {text}\n')
+        with pytest.raises(ConfigError,
+                           match=rf"wf\.toml.*'muscle_force_scale' = {text}.*'angles'"):
+            load_workflow(p)
 
     # by --set on a muscle-driven recipe, as a user would lighten it for one run
     wf = load_workflow("cylindrical_muscles", parse_overrides(

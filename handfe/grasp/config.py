@@ -361,15 +361,13 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
     if given is not None and wf.element != "p1-p1s":
         raise ConfigError(f"{src}: 'solver.stabilisation_modulus' = {given!r} stabilises the "
                           f"p1-p1s element; element = {wf.element!r} has no such term")
-    if wf.muscle_force_scale != 1.0 and wf.loading != "muscles":
-        raise ConfigError(f"{src}: 'muscle_force_scale' = {wf.muscle_force_scale:g} scales the "
-                          f"muscles mode's loads; loading = {wf.loading!r} does not use them")
-    # the key as written (as stabilisation_modulus above): the default is not a mistake in the
-    # angles mode, a split written into an angles workflow is, whatever its value
-    split = raw.get("tendon_split")
-    if split is not None and wf.loading != "muscles":
-        raise ConfigError(f"{src}: 'tendon_split' = {split!r} splits the muscles "
-                          f"mode's loads; loading = {wf.loading!r} does not use them")
+    # the keys as written (as stabilisation_modulus above): a default is not a mistake in the
+    # angles mode, a muscle key written into an angles workflow is, whatever its value
+    for key in ("muscle_force_scale", "tendon_split"):
+        given = raw.get(key)
+        if given is not None and wf.loading != "muscles":
+            raise ConfigError(f"{src}: {key!r} = {given!r} sets the muscles mode's loads; "
+                              f"loading = {wf.loading!r} does not use them")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
         raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
                           f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "
