@@ -1755,8 +1755,9 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     """A muscle-driven run other than one that has run to the end with its recipe's keys
     starts with a note of what that combination has shown (docs/grasp.md), so that a user
     does not wait 40 minutes for a known failure; the angles mode and the finished recipes get
-    none, but for a recipe's record of whole runs that did not finish."""
-    from handfe.grasp.scene import FULL_LOAD_RECIPES, muscles_mode_caveat
+    none, but for a recipe's record of whole runs that did not finish; with the object free
+    (solver.free_object) a grasp and level where that has not run to the end get their own."""
+    from handfe.grasp.scene import FREE_OBJECT_DONE, FULL_LOAD_RECIPES, muscles_mode_caveat
 
     assert muscles_mode_caveat("angles", "spherical", "reduced") == ""
     assert muscles_mode_caveat("muscles", "cylindrical", "coarse") == ""
@@ -1798,6 +1799,15 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     assert "has not been run" in muscles_mode_caveat("muscles", "precision", "default", None,
                                                      0.1)
     assert muscles_mode_caveat("muscles", "spherical", "coarse", recipe.solver, 0.1) == ""
+    # the object free: where that ran to the end, the held object's caveat; elsewhere its own
+    free = dataclasses.replace(recipe.solver, free_object=True)
+    assert muscles_mode_caveat("muscles", "cylindrical", "coarse", free) == ""
+    for (grasp, level), name in FREE_OBJECT_DONE.items():
+        wf = load_workflow(REPO_ROOT / "workflows" / name)
+        assert (wf.grasp, wf.mesh, wf.solver.free_object) == (grasp, level, True)
+    pinch = muscles_mode_caveat("muscles", "precision", "coarse", free, 0.1)
+    assert "object free" in pinch and "1/64" in pinch and "cylindrical_muscles_free" in pinch
+    assert "has not been run" in muscles_mode_caveat("muscles", "cylindrical", "reduced", free)
     ball = muscles_mode_caveat("muscles", "spherical", "coarse", recipe.solver, 0.25)
     assert "final contact phase" in ball and "<= 0.1 it ran to the end" in ball
     assert "solver.inversion_guard >= 0.5" in ball and "spherical_muscles.toml" in ball
