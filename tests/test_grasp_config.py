@@ -1808,6 +1808,7 @@ def test_the_muscles_mode_says_up_front_what_it_has_shown_for_the_grasp_and_mesh
     pinch = muscles_mode_caveat("muscles", "precision", "coarse", free, 0.1)
     assert "object free" in pinch and "1/64" in pinch and "cylindrical_muscles_free" in pinch
     assert "has not been run" in muscles_mode_caveat("muscles", "cylindrical", "reduced", free)
+    assert "1/64" in muscles_mode_caveat("muscles", "spherical", "coarse", free)
     ball = muscles_mode_caveat("muscles", "spherical", "coarse", recipe.solver, 0.25)
     assert "final contact phase" in ball and "<= 0.1 it ran to the end" in ball
     assert "solver.inversion_guard >= 0.5" in ball and "spherical_muscles.toml" in ball

@@ -275,6 +275,14 @@ _FREE_OBJECT_SEEN = {
                              "Newton asked for steps of 100-250 deg (cut to the trust radius) "
                              "and its residual stalled at 0.13-0.71 (third and forty-sixth "
                              "sessions)",
+    ("spherical", "coarse"): "failed with tendon_split = 'holzbaur2005' (the ball recipe that "
+                             "ran to the end two of two times held) at every load from 1/4 "
+                             "down to 1/64 of it in 33 min: the ball moved at the trust radius "
+                             "(0.52 mm) in 32 of 53 torque steps, at times into the ring and "
+                             "middle fingers (9-19 N on each at 1/8 and 1/32 of the load); the "
+                             "quarter's FE solves failed through four cuts (cells under the "
+                             "distal skin at J 0.08-0.1), the smaller loads' torque residual "
+                             "stalled at 0.78-1.07 (forty-sixth session)",
 }
 
 _GIVES_UP = "a run that gives up writes the last balanced load's results, marked partial"
