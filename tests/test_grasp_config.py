@@ -191,6 +191,23 @@ def test_handfe_run_set_refuses_a_bad_key_before_running(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_handfe_run_refuses_to_drop_the_muscles_settings_in_the_angles_mode(tmp_path, capsys):
+    """--loading angles on a light or free-object muscles recipe would run a different grasp
+    than its file says (no scale, the object held): refused before anything runs."""
+    from handfe.cli import main
+
+    out = tmp_path / "run"
+    assert main(["run", "precision_muscles_light", "--loading", "angles", "--out",
+                 str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "precision_muscles_light.toml: loading = 'angles' does not use " \
+        "muscle_force_scale = 0.1" in err
+    assert main(["run", "cylindrical_muscles_free", "--loading", "angles", "--out",
+                 str(out)]) == 2
+    assert "solver.free_object = true" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_show_prints_every_key_as_a_workflow_that_loads_back(tmp_path, capsys):
     """``handfe run FILE --show`` (``workflow_toml``): the keys after base, --set, --mesh and
     --loading, as a TOML that loads to the same workflow; no run, no --out needed."""
@@ -254,6 +271,19 @@ def test_muscle_force_scale_is_checked_and_belongs_to_the_muscles_mode(tmp_path)
     wf = load_workflow("cylindrical_muscles", parse_overrides(
         ["muscle_force_scale=0.25"]))
     assert wf.muscle_force_scale == 0.25
+
+
+def test_a_free_object_belongs_to_the_muscles_mode(tmp_path):
+    """The angles mode holds the object (each digit closes to its force against it): a free
+    object asked for there is refused, not run held; the muscles mode takes it."""
+    p = _write(tmp_path, 'grasp = "precision"\n[solver]\nfree_object = true\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'solver\.free_object' = true.*'angles'"):
+        load_workflow(p)
+    assert not load_workflow(_write(tmp_path, 'grasp = "precision"\n[solver]\n'
+                                              'free_object = false\n')).solver.free_object
+    assert load_workflow("cylindrical_muscles_free").solver.free_object
+    with pytest.raises(ConfigError, match="free_object"):
+        load_workflow("cylindrical_muscles_free", parse_overrides(["loading=angles"]))
 
 
 def test_contact_scheme_options_validated(tmp_path):

@@ -104,7 +104,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="mesh level, overrides the workflow's (coarse: tests/previews only; "
                    "time against error per level: README, benchmarks/grasp_time_vs_error.py)")
     p.add_argument("--loading", choices=("muscles", "angles"), default=None,
-                   help="loading mode, overrides the workflow's")
+                   help="loading mode, overrides the workflow's (angles refuses a workflow "
+                        "with muscle_force_scale, tendon_split or solver.free_object off its "
+                        "default: it would drop them)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change one workflow key for this run, over the file's (repeatable; "
                    "the value is read as TOML, a bare word as a string), e.g. --set "

@@ -348,6 +348,19 @@ def parse_overrides(items: list[str] | tuple[str, ...], *, source: str = "--set"
     return table
 
 
+def muscles_only_settings(wf: Workflow) -> list[str]:
+    """The settings of ``wf`` that act in the muscles mode only and differ from their defaults
+    (a run in the angles mode would drop them without a word)."""
+    out = []
+    if wf.muscle_force_scale != 1.0:
+        out.append(f"muscle_force_scale = {wf.muscle_force_scale:g}")
+    if wf.tendon_split != "equal":
+        out.append(f"tendon_split = {wf.tendon_split!r}")
+    if wf.solver.free_object:
+        out.append("solver.free_object = true")
+    return out
+
+
 def _load_workflow(p: Path, chain: tuple[Path, ...],
                    overrides: dict | None = None) -> tuple[Workflow, dict]:
     """The workflow in file ``p`` and its keys merged over its bases'; ``chain``: the files
@@ -368,6 +381,12 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
         if given is not None and wf.loading != "muscles":
             raise ConfigError(f"{src}: {key!r} = {given!r} sets the muscles mode's loads; "
                               f"loading = {wf.loading!r} does not use them")
+    # the angles mode closes each digit against the object where it is held: a free object
+    # there would be a held one without a word
+    if wf.solver.free_object and wf.loading != "muscles":
+        raise ConfigError(f"{src}: 'solver.free_object' = true frees the object in the muscles "
+                          f"mode only; loading = {wf.loading!r} closes each digit to its "
+                          "force against the object held in place")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
         raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
                           f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "

@@ -29,7 +29,7 @@ import numpy as np
 from mpi4py import MPI
 
 from handfe.errors import ConfigError, InputError, SolverError
-from handfe.grasp.config import SolverSpec, Workflow, load_workflow
+from handfe.grasp.config import SolverSpec, Workflow, load_workflow, muscles_only_settings
 from handfe.materials import Ogden
 
 
@@ -349,6 +349,11 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     wf = workflow if isinstance(workflow, Workflow) else load_workflow(workflow)
     level = mesh or wf.mesh
     mode = loading or wf.loading
+    dropped = muscles_only_settings(wf) if mode != "muscles" else []
+    if dropped:
+        raise ConfigError(f"{wf.source or '<workflow>'}: loading = {mode!r} does not use "
+                          f"{', '.join(dropped)} (the muscles mode's); drop them or run the "
+                          "muscles mode")
     if callable(progress):
         say = progress
     elif progress:
