@@ -191,3 +191,31 @@ def test_loaded_area_counts_a_third_of_a_facet_per_loaded_vertex():
     facet_area = np.array([3.0, 6.0, 1.0])
     p_kPa = np.array([[10.0, 9.99, 0.0], [50.0, 50.0, 50.0], [0.0, 0.0, 0.0]])
     assert loaded_area(facet_area, p_kPa, 10.0) == pytest.approx([1.0, 6.0, 0.0])
+
+
+def test_handfe_run_ends_with_the_six_regions_table(tmp_path, monkeypatch, capsys):
+    """After a run the command prints the six regions' rows of regions.csv (areas mm2,
+    pressures kPa, forces N, in that column order), not the segments; --quiet prints none."""
+    import handfe.grasp
+    from handfe.cli import main
+    from handfe.grasp.outputs import METRICS, region_table
+    from handfe.grasp.scene import GraspResult
+
+    regs = {r: dict(zip(METRICS, (100.0 + i, 50.0, 30.4, 166.6, 6.456, 0.66), strict=True))
+            for i, r in enumerate(("thumb", "thumb_distal", "index", "middle", "ring",
+                                   "little", "palm"))}
+    table = region_table(regs).splitlines()
+    assert table[0].split() == ["region", "contact", "mm2", "loaded", "mm2", "mean", "kPa",
+                                "peak", "kPa", "normal", "N", "tangential", "N"]
+    assert [row.split()[0] for row in table[1:]] == ["thumb", "index", "middle", "ring",
+                                                     "little", "palm"]
+    assert table[1].split() == ["thumb", "100", "50", "30", "167", "6.46", "0.66"]
+    assert len({len(row) for row in table}) == 1  # fixed width
+
+    monkeypatch.setattr(handfe.grasp, "run_workflow", lambda wf, **kw: GraspResult(
+        regs, {"status": "done"}, tmp_path))
+    assert main(["run", "precision", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "\n".join(table) in out and "regions.csv" in out
+    assert main(["run", "precision", "--quiet", "--out", str(tmp_path)]) == 0
+    assert "contact mm2" not in capsys.readouterr().out

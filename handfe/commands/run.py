@@ -80,6 +80,8 @@ Writes into --out (rank 0):
   fields.xdmf     displacement (mm), contact pressure (MPa), strain energy density (ParaView)
   pressure.png    palmar-view contact pressure map (kPa), regions outlined
   pressure_facets.npz  the skin facets of that map: `handfe plot RUN` redraws it (--vmax)
+At the end the command prints the six regions' rows of regions.csv (contact and loaded area
+mm2, mean and peak pressure kPa, normal and tangential force N; not with --quiet).
 Exit status: 0 for status "done"; 1 for "unbalanced" (the results are written, but the
 object's force and the support reactions differ by more than 1e-6 relative - the last Newton
 solve stopped at an accepted stall; summary.json final_residual_N says how far - or, muscles
@@ -128,6 +130,7 @@ def run(args: argparse.Namespace) -> int:
     from handfe.errors import InputError
     from handfe.grasp import load_workflow, run_workflow
     from handfe.grasp.config import parse_overrides, workflow_toml
+    from handfe.grasp.outputs import region_table
     from handfe.parallel import rprint
 
     wf = load_workflow(args.workflow, parse_overrides(args.set) if args.set else None)
@@ -139,6 +142,9 @@ def run(args: argparse.Namespace) -> int:
     if not args.out:
         raise InputError("--out is required (the output folder), unless --show")
     res = run_workflow(wf, out_dir=Path(args.out), progress=not args.quiet)
+    if not args.quiet:
+        rprint(region_table(res.regions) + f"\n(every region and segment: {args.out}/regions.csv;"
+               " pads: fingertips.csv; the rest: summary.json)")
     status = res.summary.get("status")
     if status == "done":
         return 0

@@ -19,6 +19,7 @@ patch of a few facets) it can differ from the nodal forces several times.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,23 @@ from handfe.anatomy.meshing import PHALANGES, REGIONS, SKIN_OUTER_GMSH
 
 METRICS = ("contact_area_mm2", "loaded_area_mm2", "mean_pressure_kPa", "peak_pressure_kPa",
            "normal_force_N", "tangential_force_N")
+
+
+def region_table(regions: Mapping[str, Mapping[str, float]]) -> str:
+    """The six regions' rows of regions.csv as a fixed-width text table (the segments stay
+    in the file): areas mm2, pressures kPa, forces N."""
+    head = ("region", "contact mm2", "loaded mm2", "mean kPa", "peak kPa", "normal N",
+            "tangential N")
+    fmt = ("{:.0f}", "{:.0f}", "{:.0f}", "{:.0f}", "{:.2f}", "{:.2f}")
+    rows = [head] + [(r, *(f.format(regions[r][m]) for f, m in zip(fmt, METRICS, strict=True)))
+                     for r in REGIONS if r in regions]
+    widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
+    return "\n".join(
+        "  ".join([row[0].ljust(widths[0])] + [c.rjust(w) for c, w in
+                                               zip(row[1:], widths[1:], strict=True)])
+        for row in rows)
+
+
 #: default threshold (kPa) of the loaded area: the skin where the nodal contact pressure is at
 #: least this much (a pressure sensor's view). The contact area (gap <= gap_tol) also counts
 #: skin that touches with almost no pressure, and that fringe grows as the mesh follows the
