@@ -211,11 +211,14 @@ def test_handfe_run_ends_with_the_six_regions_table(tmp_path, monkeypatch, capsy
                                                      "little", "palm"]
     assert table[1].split() == ["thumb", "100", "50", "30", "167", "6.46", "0.66"]
     assert len({len(row) for row in table}) == 1  # fixed width
+    pinch = region_table(regs, ["ring", "little"]).splitlines()
+    assert [row.split()[0] for row in pinch[1:-1]] == ["thumb", "index", "middle", "palm"]
+    assert pinch[-1] == "not meshed: ring, little"
 
     monkeypatch.setattr(handfe.grasp, "run_workflow", lambda wf, **kw: GraspResult(
-        regs, {"status": "done"}, tmp_path))
+        regs, {"status": "done", "skipped": {"digits": ["ring", "little"]}}, tmp_path))
     assert main(["run", "precision", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "\n".join(table) in out and "regions.csv" in out
+    assert "\n".join(pinch) in out and "regions.csv" in out
     assert main(["run", "precision", "--quiet", "--out", str(tmp_path)]) == 0
     assert "contact mm2" not in capsys.readouterr().out

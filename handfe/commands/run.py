@@ -143,8 +143,9 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--out is required (the output folder), unless --show")
     res = run_workflow(wf, out_dir=Path(args.out), progress=not args.quiet)
     if not args.quiet:
-        rprint(region_table(res.regions) + f"\n(every region and segment: {args.out}/regions.csv;"
-               " pads: fingertips.csv; the rest: summary.json)")
+        skipped = res.summary.get("skipped", {}).get("digits", [])
+        rprint(region_table(res.regions, skipped) + f"\n(every region and segment: "
+               f"{args.out}/regions.csv; pads: fingertips.csv; the rest: summary.json)")
     status = res.summary.get("status")
     if status == "done":
         return 0

@@ -19,7 +19,7 @@ patch of a few facets) it can differ from the nodal forces several times.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -31,19 +31,23 @@ METRICS = ("contact_area_mm2", "loaded_area_mm2", "mean_pressure_kPa", "peak_pre
            "normal_force_N", "tangential_force_N")
 
 
-def region_table(regions: Mapping[str, Mapping[str, float]]) -> str:
+def region_table(regions: Mapping[str, Mapping[str, float]],
+                 skipped: Sequence[str] = ()) -> str:
     """The six regions' rows of regions.csv as a fixed-width text table (the segments stay
-    in the file): areas mm2, pressures kPa, forces N."""
+    in the file): areas mm2, pressures kPa, forces N; a ``skipped`` digit (not meshed) is
+    named as such instead of a row of zeros."""
     head = ("region", "contact mm2", "loaded mm2", "mean kPa", "peak kPa", "normal N",
             "tangential N")
     fmt = ("{:.0f}", "{:.0f}", "{:.0f}", "{:.0f}", "{:.2f}", "{:.2f}")
+    shown = [r for r in REGIONS if r in regions and r not in skipped]
     rows = [head] + [(r, *(f.format(regions[r][m]) for f, m in zip(fmt, METRICS, strict=True)))
-                     for r in REGIONS if r in regions]
+                     for r in shown]
     widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
-    return "\n".join(
-        "  ".join([row[0].ljust(widths[0])] + [c.rjust(w) for c, w in
-                                               zip(row[1:], widths[1:], strict=True)])
-        for row in rows)
+    lines = ["  ".join([row[0].ljust(widths[0])] + [c.rjust(w) for c, w in
+                                                    zip(row[1:], widths[1:], strict=True)])
+             for row in rows]
+    gone = [r for r in REGIONS if r in skipped]
+    return "\n".join(lines + ([f"not meshed: {', '.join(gone)}"] if gone else []))
 
 
 #: default threshold (kPa) of the loaded area: the skin where the nodal contact pressure is at
