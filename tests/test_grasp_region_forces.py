@@ -222,3 +222,19 @@ def test_handfe_run_ends_with_the_six_regions_table(tmp_path, monkeypatch, capsy
     assert "\n".join(pinch) in out and "regions.csv" in out
     assert main(["run", "precision", "--quiet", "--out", str(tmp_path)]) == 0
     assert "contact mm2" not in capsys.readouterr().out
+
+
+def test_pressure_map_names_each_loaded_region_at_its_patch():
+    """The map's labels: one per region with loaded facets (REGIONS order), at the
+    pressure-weighted centroid of those facets; an unloaded region gets none."""
+    from handfe.grasp.outputs import region_labels
+
+    tri = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, 3.0]])  # centroid (1, 1)
+    xy = np.stack([tri, tri + [10.0, 0.0], tri + [0.0, 20.0], tri + [50.0, 50.0]])
+    pf = np.array([30.0, 10.0, 5.0, 0.0])
+    loaded = pf > 0.0
+    reg = np.array(["index", "index", "thumb", "palm"])
+    labels = region_labels(xy, pf, loaded, reg)
+    assert [name for name, _, _ in labels] == ["thumb", "index"]
+    assert labels[0][1:] == pytest.approx((1.0, 21.0))
+    assert labels[1][1:] == pytest.approx((1.0 + 10.0 * 10 / 40, 1.0))

@@ -273,10 +273,26 @@ def load_pressure_facets(path: Path) -> tuple[dict[str, np.ndarray], np.ndarray,
         return data, z["hand_R"], str(z["title"])
 
 
+def region_labels(xy: np.ndarray, pf: np.ndarray, loaded: np.ndarray, reg: np.ndarray
+                  ) -> list[tuple[str, float, float]]:
+    """(region, x, y) of each region (REGIONS order) with loaded facets: the pressure-weighted
+    centroid of those facets in the map's plane (mm); ``xy`` (n, 3, 2) facet vertices, ``pf``
+    facet pressures, ``loaded`` facet mask, ``reg`` facet region names."""
+    out = []
+    for r in REGIONS:
+        m = loaded & (reg == r)
+        if m.any():
+            w = pf[m]
+            c = (xy[m].mean(axis=1) * w[:, None]).sum(axis=0) / w.sum()
+            out.append((r, float(c[0]), float(c[1])))
+    return out
+
+
 def draw_pressure_map(data: dict[str, np.ndarray], hand_R: np.ndarray, path: Path, *,
                       title: str = "", vmax_kPa: float | None = None) -> float:
     """Draw the palmar pressure map of gathered facets (:func:`gather_pressure_facets`) into
-    ``path``; colour scale 0..``vmax_kPa`` (default the largest facet pressure, kPa), returned.
+    ``path``; colour scale 0..``vmax_kPa`` (default the largest facet pressure, kPa), returned;
+    each loaded region named at its patch.
     The loaded facets are drawn over the unloaded ones whatever their depth: in a power grasp
     the pads face the object inside the closed hand and the skin around them would hide
     them."""
@@ -314,6 +330,10 @@ def draw_pressure_map(data: dict[str, np.ndarray], hand_R: np.ndarray, path: Pat
             edges[k] = (reg[i], i)
     if segs:
         ax.add_collection(LineCollection(segs, colors="k", linewidths=0.5))
+    for name, x, y in region_labels(xy, pf, loaded, reg):
+        ax.annotate(name, (x, y), xytext=(10, 10), textcoords="offset points", fontsize=8,
+                    bbox={"boxstyle": "round,pad=0.2", "fc": "white", "alpha": 0.8, "lw": 0},
+                    arrowprops={"arrowstyle": "-", "lw": 0.6})
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, vmax))
     fig.colorbar(sm, ax=ax, label="contact pressure (kPa)", shrink=0.7)
     ax.set_aspect("equal")
