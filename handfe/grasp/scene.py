@@ -349,6 +349,8 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     wf = workflow if isinstance(workflow, Workflow) else load_workflow(workflow)
     level = mesh or wf.mesh
     mode = loading or wf.loading
+    # the workflow as run: everything downstream (the FE scene too) reads this one
+    wf = replace(wf, mesh=level, loading=mode)
     dropped = muscles_only_settings(wf) if mode != "muscles" else []
     if dropped:
         raise ConfigError(f"{wf.source or '<workflow>'}: loading = {mode!r} does not use "
@@ -378,7 +380,7 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         "stages_s": stages, "status": "running",
         # every key the run used (the workflow's over its base's and the defaults), so a run
         # folder says how to redo it
-        "settings": asdict(replace(wf, mesh=level, loading=mode))}
+        "settings": asdict(wf)}
 
     def checkpoint(status: str) -> None:
         summary["status"] = status
