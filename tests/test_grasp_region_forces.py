@@ -196,7 +196,7 @@ def test_loaded_area_counts_a_third_of_a_facet_per_loaded_vertex():
 def test_handfe_run_ends_with_the_six_regions_table(tmp_path, monkeypatch, capsys):
     """After a run the command prints the six regions' rows of regions.csv (areas mm2,
     pressures kPa, forces N, in that column order), not the segments; --quiet prints none."""
-    import handfe.grasp
+    import handfe.grasp.scene as scene
     from handfe.cli import main
     from handfe.grasp.outputs import METRICS, region_table
     from handfe.grasp.scene import GraspResult
@@ -215,7 +215,10 @@ def test_handfe_run_ends_with_the_six_regions_table(tmp_path, monkeypatch, capsy
     assert [row.split()[0] for row in pinch[1:-1]] == ["thumb", "index", "middle", "palm"]
     assert pinch[-1] == "not meshed: ring, little"
 
-    monkeypatch.setattr(handfe.grasp, "run_workflow", lambda wf, **kw: GraspResult(
+    # patched where it lives: handfe.grasp hands it out lazily (module __getattr__), and a
+    # patch of handfe.grasp.run_workflow would leave the real function bound there on undo,
+    # where later tests' patches of scene.run_workflow no longer reach
+    monkeypatch.setattr(scene, "run_workflow", lambda wf, **kw: GraspResult(
         regs, {"status": "done", "skipped": {"digits": ["ring", "little"]}}, tmp_path))
     assert main(["run", "precision", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
