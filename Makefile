@@ -18,7 +18,9 @@ system:
 	@bash scripts/install-system.sh
 
 $(STAMP): pyproject.toml
-	@test -x $(PY) || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	@# a venv without pip is one whose creation was interrupted: made again from scratch
+	@$(PY) -m pip --version >/dev/null 2>&1 || \
+		/usr/bin/python3 -m venv --clear --system-site-packages $(VENV)
 	$(PY) -m pip install -q --disable-pip-version-check -e '.[test]'
 	@$(PY) scripts/check-env.py
 	@touch $(STAMP)
