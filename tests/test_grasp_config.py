@@ -286,6 +286,29 @@ def test_a_free_object_belongs_to_the_muscles_mode(tmp_path):
         load_workflow("cylindrical_muscles_free", parse_overrides(["loading=angles"]))
 
 
+def test_the_palm_press_belongs_to_the_angles_mode(tmp_path, capsys):
+    """solver.palm_force_N presses the object into the palm before the kinematic closing: in
+    range, refused in a muscles workflow (written or by --loading muscles) rather than
+    dropped."""
+    from handfe.cli import main
+
+    p = _write(tmp_path, 'grasp = "cylindrical"\n[solver]\npalm_force_N = 20.0\n')
+    assert load_workflow(p).solver.palm_force_N == 20.0
+    p = _write(tmp_path, 'grasp = "cylindrical"\n[solver]\npalm_force_N = -1.0\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*palm_force_N.*-1"):
+        load_workflow(p)
+    p = _write(tmp_path, 'grasp = "cylindrical"\nloading = "muscles"\n[solver]\n'
+               'palm_force_N = 20.0\n')
+    with pytest.raises(ConfigError, match=r"wf\.toml.*'solver\.palm_force_N' = 20.*muscles"):
+        load_workflow(p)
+    out = tmp_path / "run"
+    assert main(["run", "cylindrical", "--set", "solver.palm_force_N=20", "--loading",
+                 "muscles", "--out", str(out)]) == 2
+    assert "loading = 'muscles' does not use solver.palm_force_N = 20" in \
+        capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_contact_scheme_options_validated(tmp_path):
     p = _write(tmp_path, 'grasp = "precision"\n[solver]\nnewton_linesearch = "cp"\n')
     with pytest.raises(ConfigError, match="newton_linesearch"):
@@ -710,6 +733,97 @@ def test_closing_redoes_a_failed_multi_digit_step_one_digit_at_a_time():
     # the closing history (summary.json steps): the digit forces after each closing step
     assert fake.steps[-1]["digit_force_N"] == fake.digit_forces()
     assert all("digit_force_N" in st for st in fake.steps)
+
+
+class _FakePalm:
+    """Stand-in for :class:`handfe.grasp.scene.GraspFE` in the palm's press: the palm's force
+    grows exponentially with the object's travel past the palm's starting gap (a soft pad
+    that stiffens), along the palm direction only; optionally one step 'fails to converge'."""
+
+    def __init__(self, gap_mm=2.0, fail_beyond_mm=None, **solver):
+        from types import SimpleNamespace
+
+        from handfe.grasp.config import SolverSpec
+
+        self.wf = SimpleNamespace(solver=SolverSpec(
+            closing_secant=True, step_uzawa=False, digit_force_rtol=0.2,
+            **{"palm_force_N": 20.0, "palm_step_mm": 0.5, "palm_travel_mm": 15.0, **solver}))
+        self.palm_direction = np.array([0.0, 0.6, -0.8])
+        self.palm_gap_mm = gap_mm
+        self.contact = SimpleNamespace(translation=SimpleNamespace(value=np.array([1., 2., 3.])))
+        self.t0 = self.contact.translation.value.copy()
+        self.theta = np.zeros(2)
+        self.fail_beyond_mm = fail_beyond_mm
+        self.steps, self.log, self.moves = [], [], []
+
+    def travel(self):
+        return float((self.contact.translation.value - self.t0) @ self.palm_direction)
+
+    def palm_force(self):
+        depth = max(0.0, self.travel() - self.palm_gap_mm)
+        return -0.2 * float(np.expm1(0.9 * depth)) * self.palm_direction
+
+    def say(self, msg):
+        self.log.append(msg)
+
+    def _go_to(self, theta, *, label, max_cuts=6, translation=None):
+        from handfe.errors import SolverError
+
+        t = np.asarray(translation, dtype=float)
+        off = (t - self.t0) - ((t - self.t0) @ self.palm_direction) * self.palm_direction
+        assert np.allclose(off, 0.0) and np.array_equal(theta, self.theta)
+        if self.fail_beyond_mm is not None and (t - self.t0) @ self.palm_direction \
+                > self.fail_beyond_mm:
+            raise SolverError(f"load step '{label}' did not converge after 6 cuts",
+                              load_step=len(self.steps) + 1)
+        self.moves.append(float((t - self.t0) @ self.palm_direction))
+        self.contact.translation.value = t
+        self.steps.append({"step": label})
+
+    def _snapshot(self):
+        return {"t": self.contact.translation.value.copy()}
+
+    def _restore(self, snap):
+        self.contact.translation.value = snap["t"].copy()
+
+    def _scale_loose(self, forces):
+        pass
+
+    def _stiffen(self):
+        pass
+
+
+def test_the_palm_press_moves_the_object_to_the_palms_force():
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakePalm(gap_mm=2.0)
+    GraspFE._press_palm(fake)
+    f = float(np.linalg.norm(fake.palm_force()))
+    assert 16.0 <= f <= 24.0  # within digit_force_rtol of palm_force_N
+    # the first move crosses the starting gap at once, by half a step past it
+    assert fake.moves[0] == pytest.approx(2.25)
+    assert fake.palm_press["travel_mm"] == pytest.approx(fake.travel())
+    assert fake.palm_press["force_N"] == pytest.approx(f)
+    assert fake.palm_press["direction"] == pytest.approx([0.0, 0.6, -0.8])
+    assert "stalled" not in fake.palm_press
+    # the steps past the first are secant steps of at most palm_step_mm (redone ones smaller)
+    accepted = np.diff([0.0] + fake.moves)
+    assert np.all(np.abs(accepted[1:]) <= 0.5 + 1e-12)
+    assert fake.steps[-1]["palm_force_N"] == pytest.approx(f)
+
+
+def test_the_palm_press_stops_where_a_step_fails_and_at_its_travel():
+    from handfe.grasp.scene import GraspFE
+
+    fake = _FakePalm(gap_mm=2.0, fail_beyond_mm=4.0)
+    GraspFE._press_palm(fake)
+    assert "did not converge" in fake.palm_press["stalled"]
+    assert fake.travel() <= 4.0 and fake.palm_press["travel_mm"] == pytest.approx(fake.travel())
+    assert any("press stops here" in m for m in fake.log)
+    short = _FakePalm(gap_mm=2.0, palm_travel_mm=3.0)
+    GraspFE._press_palm(short)
+    assert short.travel() == pytest.approx(3.0)
+    assert np.linalg.norm(short.palm_force()) < 16.0 and "stalled" not in short.palm_press
 
 
 class _FakeUzawa:

@@ -167,6 +167,15 @@ class SolverSpec:
     closing_deg: float = field(default=6.0, metadata=bounds(0.0, 45.0))
     closing_step_deg: float = field(default=0.5, metadata=bounds(0.01, 10.0))
     digit_force_N: float = field(default=5.0, metadata=bounds(0.0, 2000.0))
+    # angles mode: before the digits close, the object moves towards the palm (along the
+    # object's normal at the palm's nearest skin) until the palm carries palm_force_N, in
+    # steps of at most palm_step_mm (log-force secant, redone on overshoot, the digits' band
+    # digit_force_rtol) and at most palm_travel_mm in all; then the digits close against it
+    # held there. 0 = the object stays where it was placed (the palm takes nothing: the
+    # object's support holds the digits' push, docs/grasp.md)
+    palm_force_N: float = field(default=0.0, metadata=bounds(0.0, 2000.0))
+    palm_step_mm: float = field(default=0.5, metadata=bounds(0.01, 10.0))
+    palm_travel_mm: float = field(default=15.0, metadata=bounds(0.0, 60.0))
     penalty_factor: float = field(default=10.0, metadata=bounds(0.1, 1e6))
     # penalty continuation in the closing steps: k_n grows (up to max_penalty_growth x its
     # start value penalty_factor x E0/h) while a step leaves more than step_penetration_mm
@@ -361,6 +370,13 @@ def muscles_only_settings(wf: Workflow) -> list[str]:
     return out
 
 
+def angles_only_settings(wf: Workflow) -> list[str]:
+    """The settings of ``wf`` that act in the angles mode only and differ from their defaults
+    (the muscles mode would drop them without a word)."""
+    return [f"solver.palm_force_N = {wf.solver.palm_force_N:g}"] \
+        if wf.solver.palm_force_N > 0.0 else []
+
+
 def _load_workflow(p: Path, chain: tuple[Path, ...],
                    overrides: dict | None = None) -> tuple[Workflow, dict]:
     """The workflow in file ``p`` and its keys merged over its bases'; ``chain``: the files
@@ -387,6 +403,11 @@ def _load_workflow(p: Path, chain: tuple[Path, ...],
         raise ConfigError(f"{src}: 'solver.free_object' = true frees the object in the muscles "
                           f"mode only; loading = {wf.loading!r} closes each digit to its "
                           "force against the object held in place")
+    if wf.solver.palm_force_N > 0.0 and wf.loading == "muscles":
+        raise ConfigError(f"{src}: 'solver.palm_force_N' = {wf.solver.palm_force_N:g} presses "
+                          "the object into the palm before the kinematic closing (loading = "
+                          "'angles'); in the muscles mode the palm takes the push with "
+                          "'solver.free_object' = true")
     if wf.solver.guard_damping and wf.solver.inversion_guard <= 0.0:
         raise ConfigError(f"{src}: 'solver.guard_damping' = true needs 'solver.inversion_guard' "
                           f"> 0 (it is {wf.solver.inversion_guard:g}): the damping follows "

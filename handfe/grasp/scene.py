@@ -29,7 +29,13 @@ import numpy as np
 from mpi4py import MPI
 
 from handfe.errors import ConfigError, InputError, SolverError
-from handfe.grasp.config import SolverSpec, Workflow, load_workflow, muscles_only_settings
+from handfe.grasp.config import (
+    SolverSpec,
+    Workflow,
+    angles_only_settings,
+    load_workflow,
+    muscles_only_settings,
+)
 from handfe.materials import Ogden
 
 
@@ -150,6 +156,36 @@ def start_gaps(obstacle, shift: np.ndarray, surface) -> dict[str, float]:
         if sel.any():
             out[r] = float(g[np.unique(surface.triangles[sel])].min())
     return out
+
+
+def palm_direction(obstacle, shift: np.ndarray, surface, digits: tuple[str, ...]
+                   ) -> tuple[np.ndarray, float, float]:
+    """Direction (world, unit) in which the object moves into the palm: the digits' push, the
+    sum over the participating digits of the object's inward normal at each digit's nearest
+    skin point, -sum(n_i), i.e. where equal digit forces along their contact normals would
+    push it. (The palm's own normal, tried first, pressed the object into the index's
+    proximal phalanx: the coarse cylinder's index took 31 N before it closed; docs/grasp.md.)
+    Also the palm's smallest gap (mm) and |sum(n_i)| (the push of the digits per N of digit
+    force). Rank-0 surface data."""
+    from handfe.grasp.outputs import region_of
+
+    tri_reg = np.array([region_of(c)[0] for c in surface.codes])
+    if not (tri_reg == "palm").any():
+        raise InputError("the mesh has no palm skin: 'solver.palm_force_N' needs one")
+    push = np.zeros(3)
+    for r in digits:
+        sel = tri_reg == r
+        if sel.any():
+            g, n = obstacle.gap_normal(surface.points[np.unique(surface.triangles[sel])],
+                                       np.asarray(shift, dtype=float))
+            push -= n[int(np.argmin(g))]
+    size = float(np.linalg.norm(push))
+    if size < 1e-6:
+        raise InputError("the digits' push on the object is 0 (they surround it evenly): "
+                         "'solver.palm_force_N' has no direction to move it in")
+    palm = surface.points[np.unique(surface.triangles[tri_reg == "palm"])]
+    gap = float(obstacle.gap_normal(palm, np.asarray(shift, dtype=float))[0].min())
+    return push / size, gap, size
 
 
 def measured_pose(wf: Workflow, grasp, subject_dir: Path):
@@ -356,6 +392,11 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         raise ConfigError(f"{wf.source or '<workflow>'}: loading = {mode!r} does not use "
                           f"{', '.join(dropped)} (the muscles mode's); drop them or run the "
                           "muscles mode")
+    dropped = angles_only_settings(wf) if mode == "muscles" else []
+    if dropped:
+        raise ConfigError(f"{wf.source or '<workflow>'}: loading = {mode!r} does not use "
+                          f"{', '.join(dropped)} (the angles mode's); drop them or run the "
+                          "angles mode")
     if callable(progress):
         say = progress
     elif progress:
@@ -551,6 +592,17 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
         t0 = time.perf_counter()
         scene = GraspFE(model, grasp, wf, skin, subcut, obstacle, shift, pose, subject, forces,
                         say, measured)
+        if s.palm_force_N > 0.0 and mode == "angles":
+            res = None
+            if comm.rank == 0:
+                try:
+                    res = palm_direction(obstacle, shift, model.surface, grasp.digits)
+                except Exception as exc:  # rank 0 only: report, never hang rank 1
+                    res = f"the palm's direction failed on rank 0: {type(exc).__name__}: {exc}"
+            res = comm.bcast(res, root=0)
+            if isinstance(res, str):
+                raise InputError(res)
+            scene.palm_direction, scene.palm_gap_mm, scene.digit_push_per_N = res
         stages["fe_setup"] = time.perf_counter() - t0
         summary["dofs"] = scene.problem.num_dofs()
         say(f"FE problem: {summary['dofs']} dofs ({wf.element}), {len(scene.joints)} released "
@@ -1362,28 +1414,32 @@ class GraspFE:
             B[idp, cols.index(ip)] = c
         return B
 
-    def _digit_dofs(self) -> dict[str, list[np.ndarray]]:
-        """Owned displacement dofs (per component) of each participating digit's outer skin."""
+    def _region_dofs(self, region: str) -> list[np.ndarray]:
+        """Owned displacement dofs (per component) of one region's outer skin (a digit or
+        the palm)."""
         from dolfinx import fem
 
         from handfe.grasp.outputs import region_of
 
-        if getattr(self, "_ddofs", None) is None:
+        cache = self.__dict__.setdefault("_rdofs", {})
+        if region not in cache:
             W = self.problem.W
             ft = self.model.facet_tags
             fdim = self.model.mesh.topology.dim - 1
             n_owned = W.dofmap.index_map.size_local * W.dofmap.index_map_bs
             codes = np.array(self.model.groups["skin_outer"])
-            digit_of = np.array([region_of(c)[0] for c in codes])
-            self._ddofs = {}
-            for d in self.grasp.digits:
-                f = ft.indices[np.isin(ft.values, codes[digit_of == d])]
-                dd = []
-                for i in range(3):
-                    x = fem.locate_dofs_topological(W.sub(0).sub(i), fdim, f)
-                    dd.append(x[x < n_owned])
-                self._ddofs[d] = dd
-        return self._ddofs
+            region_of_code = np.array([region_of(c)[0] for c in codes])
+            f = ft.indices[np.isin(ft.values, codes[region_of_code == region])]
+            dd = []
+            for i in range(3):
+                x = fem.locate_dofs_topological(W.sub(0).sub(i), fdim, f)
+                dd.append(x[x < n_owned])
+            cache[region] = dd
+        return cache[region]
+
+    def _digit_dofs(self) -> dict[str, list[np.ndarray]]:
+        """Owned displacement dofs (per component) of each participating digit's outer skin."""
+        return {d: self._region_dofs(d) for d in self.grasp.digits}
 
     def _contact_force_sums(self) -> tuple[np.ndarray, np.ndarray]:
         """Contact force (N) the skin exerts on the object: (net vector, one vector per
@@ -1400,6 +1456,18 @@ class GraspFE:
         Rc.destroy()
         tot = np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
         return tot[-1], tot[:-1]
+
+    def palm_force(self) -> np.ndarray:
+        """Contact force (N, vector) the palm's skin exerts on the object, summed over ranks."""
+        from dolfinx.fem import petsc as fem_petsc
+        from petsc4py import PETSc
+
+        Rc = fem_petsc.assemble_vector(self.solver.L[1])
+        Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
+        r = Rc.getArray()
+        local = np.array([r[x].sum() for x in self._region_dofs("palm")])
+        Rc.destroy()
+        return np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
 
     def digit_forces(self) -> dict[str, float]:
         """Magnitude of the contact force (N) each participating digit exerts on the object."""
@@ -1458,6 +1526,8 @@ class GraspFE:
         """Kinematic closing (:meth:`_close_digits`), then the Uzawa phase removes the remaining
         penetration; the closing with ``solver.closing_atol_N``, then tight solves."""
         with self._loose():
+            if self.wf.solver.palm_force_N > 0.0:
+                self._press_palm()
             self._close_digits()
         self._tighten()
         self._final_phase()
@@ -1563,6 +1633,71 @@ class GraspFE:
             f"converged ({its} iterations)" if ok else
             f"failed ({reason}, {its} iterations): the state keeps its {r0:.1e} N residual"))
         return bool(ok)
+
+    def _press_palm(self) -> None:
+        """Angles mode, before the digits close: the object moves along ``palm_direction``
+        (the digits' push, towards the palm) until the palm carries ``solver.palm_force_N``
+        within the digits' band ``digit_force_rtol``. The first move takes it past the palm's
+        starting gap by half a step; then log-force secant steps of at most ``palm_step_mm``
+        (a step past the band redone smaller), with the digits' Uzawa updates after each, at
+        most ``palm_travel_mm`` in all. A step that fails through its cuts ends the press there
+        (``palm_press.stalled`` in the summary); the digits then close against the object
+        where it is."""
+        s = self.wf.solver
+        d = np.asarray(self.palm_direction, dtype=float)
+        t0 = np.array(self.contact.translation.value, dtype=float)
+        target, rtol = s.palm_force_N, s.digit_force_rtol
+        f_stop, f_over = (1.0 - rtol) * target, (1.0 + rtol) * target
+        far = max(OVERSHOOT_ABANDON, 1.0 + rtol) * target
+        travel, k = 0.0, 0
+        last: tuple[float, float] | None = None
+        f = float(np.linalg.norm(self.palm_force()))
+        # what the digits would push with at digit_force_N each along their start normals
+        push_N = s.digit_force_N * float(getattr(self, "digit_push_per_N", float("nan")))
+        self.palm_press: dict[str, Any] = {"target_N": target, "direction": d.tolist(),
+                                           "start_gap_mm": float(self.palm_gap_mm),
+                                           "digits_push_estimate_N": push_N}
+        self.say(f"palm: the object moves along the digits' push (start gap to the palm "
+                 f"{self.palm_gap_mm:.2f} mm) until the palm carries {target:g} N (the digits "
+                 f"at {s.digit_force_N:g} N each would push with ~{push_N:.1f} N)")
+        while f < f_stop and travel < s.palm_travel_mm - 1e-9:
+            k += 1
+            self._scale_loose({"palm": f})
+            if last is None and f <= 1e-3 * target:
+                inc = max(self.palm_gap_mm, 0.0) + 0.5 * s.palm_step_mm
+            else:
+                inc = secant_closing_increment(last, travel, f, target, rtol, s.palm_step_mm)
+            inc = min(inc, s.palm_travel_mm - travel)
+            snap = self._snapshot()
+            f_new = f
+            for retry in range(4):
+                try:
+                    self._go_to(self.theta, label=f"palm {k}",
+                                translation=t0 + (travel + inc) * d)
+                except SolverError as exc:
+                    self._restore(snap)
+                    self.palm_press["stalled"] = str(exc)
+                    self.say(f"    the palm's press stops here: {exc}")
+                    inc = 0.0
+                    break
+                if s.step_uzawa:
+                    self.augment(s.step_penetration_mm, creep=False, stop=lambda: bool(
+                        np.linalg.norm(self.palm_force()) > far))
+                else:
+                    self._stiffen()
+                f_new = float(np.linalg.norm(self.palm_force()))
+                if f_new <= f_over or retry == 3:
+                    break
+                self.say(f"    palm {f_new:.2f} N overshoots {target:g} N: step redone smaller")
+                self._restore(snap)
+                inc *= redo_closing_fraction(f, f_new, target, rtol, retry)
+            if inc == 0.0:
+                break
+            last, travel, f = (travel, f), travel + inc, f_new
+            if self.steps:
+                self.steps[-1]["palm_force_N"] = f
+            self.say(f"  palm step {k}: object {travel:.2f} mm in, palm {f:.2f} N")
+        self.palm_press.update({"travel_mm": travel, "force_N": f, "steps": k})
 
     def _close_digits(self) -> None:
         """Each digit whose contact force is below ``digit_force_N`` closes its released joints
@@ -2160,6 +2295,9 @@ class GraspFE:
                 # friction return mappings a failed solve dropped (scene._go_to)
                 "dropped_friction_mappings": int(getattr(self, "dropped_mappings", 0)),
                 "closing_deg": getattr(self, "closing_deg", {}),
+                # solver.palm_force_N: the object's move into the palm before the closing
+                # (direction world unit vector; travel mm; the palm's force N when it ended)
+                "palm_press": getattr(self, "palm_press", None),
                 # friction coefficient of the kinematic closing (muscles mode: 0 with
                 # muscle_frictionless_closing; mu of the grasp otherwise)
                 "closing_mu": float(getattr(self, "closing_mu", self.contact.mu)),
