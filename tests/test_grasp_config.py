@@ -793,6 +793,34 @@ class _FakePalm:
         pass
 
 
+def test_the_palm_press_direction_is_the_digits_push_kept_at_the_thumb():
+    """palm_direction: -sum of the object's normals at each digit's nearest skin point, less
+    the part that would move the object away from the thumb; the palm's gap; |sum n|."""
+    from handfe.contact import Sphere
+    from handfe.grasp.outputs import REGIONS, SKIN_OUTER_GMSH
+    from handfe.grasp.scene import palm_direction
+
+    where = {"thumb": (12.0, 0.0, 0.0), "index": (0.0, 12.0, 0.0), "middle": (0.0, 0.0, 12.0),
+             "palm": (0.0, 0.0, -15.0)}
+    pts, tris, codes = [], [], []
+    for r, c in where.items():
+        k = len(pts)
+        pts += [np.add(c, e) for e in ((0, 0, 0), (0.1, 0.1, 0), (0, 0.1, 0.1))]
+        tris.append([k, k + 1, k + 2])
+        codes.append(SKIN_OUTER_GMSH + 10 * (REGIONS.index(r) + 1) + 1)
+    surf = SurfaceData(np.array(pts), np.array(tris), np.array(codes))
+    ball = Sphere(centre=(0.0, 0.0, 0.0), radius=10.0)
+    d, gap, size = palm_direction(ball, np.zeros(3), surf, ("thumb", "index", "middle"),
+                                  thumb_kept=False)
+    assert d == pytest.approx(-np.ones(3) / np.sqrt(3.0), abs=0.01)
+    assert size == pytest.approx(np.sqrt(3.0), abs=0.02) and gap == pytest.approx(4.9, abs=0.01)
+    d, _, _ = palm_direction(ball, np.zeros(3), surf, ("thumb", "index", "middle"))
+    assert d == pytest.approx([0.0, -1.0 / np.sqrt(2.0), -1.0 / np.sqrt(2.0)], abs=0.01)
+    with pytest.raises(InputError, match="no palm skin"):
+        palm_direction(ball, np.zeros(3), SurfaceData(np.array(pts[:9]), np.array(tris[:3]),
+                                                      np.array(codes[:3])), ("index",))
+
+
 def test_the_palm_press_moves_the_object_to_the_palms_force():
     from handfe.grasp.scene import GraspFE
 

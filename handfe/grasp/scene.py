@@ -158,8 +158,8 @@ def start_gaps(obstacle, shift: np.ndarray, surface) -> dict[str, float]:
     return out
 
 
-def palm_direction(obstacle, shift: np.ndarray, surface, digits: tuple[str, ...]
-                   ) -> tuple[np.ndarray, float, float]:
+def palm_direction(obstacle, shift: np.ndarray, surface, digits: tuple[str, ...],
+                   thumb_kept: bool = True) -> tuple[np.ndarray, float, float]:
     """Direction (world, unit) in which the object moves into the palm: the digits' push, the
     sum over the participating digits of the object's inward normal at each digit's nearest
     skin point, -sum(n_i), i.e. where equal digit forces along their contact normals would
@@ -173,19 +173,28 @@ def palm_direction(obstacle, shift: np.ndarray, surface, digits: tuple[str, ...]
     if not (tri_reg == "palm").any():
         raise InputError("the mesh has no palm skin: 'solver.palm_force_N' needs one")
     push = np.zeros(3)
+    normal = {}
     for r in digits:
         sel = tri_reg == r
         if sel.any():
             g, n = obstacle.gap_normal(surface.points[np.unique(surface.triangles[sel])],
                                        np.asarray(shift, dtype=float))
-            push -= n[int(np.argmin(g))]
+            normal[r] = n[int(np.argmin(g))]
+            push -= normal[r]
     size = float(np.linalg.norm(push))
     if size < 1e-6:
         raise InputError("the digits' push on the object is 0 (they surround it evenly): "
                          "'solver.palm_force_N' has no direction to move it in")
+    d = push / size
+    if thumb_kept and "thumb" in normal and d @ normal["thumb"] < 0.0:
+        # without the part that leaves the thumb: its closing through the thenar tissue is
+        # the one Newton struggles with (coarse cylinder: 4 mm away, 13 deg more closing, one
+        # step cut to 1/32 for 700 s)
+        d = d - (d @ normal["thumb"]) * normal["thumb"]
+        d /= np.linalg.norm(d)
     palm = surface.points[np.unique(surface.triangles[tri_reg == "palm"])]
     gap = float(obstacle.gap_normal(palm, np.asarray(shift, dtype=float))[0].min())
-    return push / size, gap, size
+    return d, gap, size
 
 
 def measured_pose(wf: Workflow, grasp, subject_dir: Path):
