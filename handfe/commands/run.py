@@ -51,7 +51,9 @@ Loading:
            FDP 0.29; anatomy/tendon_splits.csv)
   angles   (default) each participating digit closes from the pre-closed posture until it
            presses with solver.digit_force_N (at most solver.closing_deg), then Uzawa updates
-           bring the penetration to <= 0.01 mm
+           bring the penetration to <= 0.01 mm. solver.palm_force_N > 0 (experimental, off)
+           first moves the held object along the digits' push into the palm until the palm
+           carries that force (summary.json palm_press; docs/grasp.md)
 
 Workflow file: subject, grasp, trial, loading, muscle_force_scale, tendon_split, mesh,
 element, base; tables [solver] and [outputs] (each key with its range and why:
@@ -108,7 +110,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--loading", choices=("muscles", "angles"), default=None,
                    help="loading mode, overrides the workflow's (angles refuses a workflow "
                         "with muscle_force_scale, tendon_split or solver.free_object off its "
-                        "default: it would drop them)")
+                        "default, muscles one with solver.palm_force_N: it would drop them)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change one workflow key for this run, over the file's (repeatable; "
                    "the value is read as TOML, a bare word as a string), e.g. --set "
