@@ -167,12 +167,13 @@ class SolverSpec:
     closing_deg: float = field(default=6.0, metadata=bounds(0.0, 45.0))
     closing_step_deg: float = field(default=0.5, metadata=bounds(0.01, 10.0))
     digit_force_N: float = field(default=5.0, metadata=bounds(0.0, 2000.0))
-    # angles mode: before the digits close, the object moves towards the palm (along the
-    # object's normal at the palm's nearest skin) until the palm carries palm_force_N, in
-    # steps of at most palm_step_mm (log-force secant, redone on overshoot, the digits' band
-    # digit_force_rtol) and at most palm_travel_mm in all; then the digits close against it
-    # held there. 0 = the object stays where it was placed (the palm takes nothing: the
-    # object's support holds the digits' push, docs/grasp.md)
+    # angles mode, experimental: before the digits close, the object moves into the palm
+    # (along the digits' push, less the part that leaves the thumb: scene.palm_direction)
+    # until the palm carries palm_force_N, in steps of at most palm_step_mm (log-force
+    # secant, redone on overshoot, the digits' band digit_force_rtol) and at most
+    # palm_travel_mm in all; then the digits close against it held there. 0 = the object
+    # stays where it was placed (the palm takes nothing: the object's support holds the
+    # digits' push; docs/grasp.md, thirty-fourth and forty-seventh sessions)
     palm_force_N: float = field(default=0.0, metadata=bounds(0.0, 2000.0))
     palm_step_mm: float = field(default=0.5, metadata=bounds(0.01, 10.0))
     palm_travel_mm: float = field(default=15.0, metadata=bounds(0.0, 60.0))
