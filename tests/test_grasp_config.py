@@ -740,7 +740,7 @@ class _FakePalm:
     grows exponentially with the object's travel past the palm's starting gap (a soft pad
     that stiffens), along the palm direction only; optionally one step 'fails to converge'."""
 
-    def __init__(self, gap_mm=2.0, fail_beyond_mm=None, **solver):
+    def __init__(self, gap_mm=2.0, fail_beyond_mm=None, wall_N_per_mm2=0.0, **solver):
         from types import SimpleNamespace
 
         from handfe.grasp.config import SolverSpec
@@ -754,6 +754,7 @@ class _FakePalm:
         self.t0 = self.contact.translation.value.copy()
         self.theta = np.zeros(2)
         self.fail_beyond_mm = fail_beyond_mm
+        self.wall = wall_N_per_mm2  # a stiff layer 1 mm into the pad: + wall x (depth - 1)^2
         self.steps, self.log, self.moves = [], [], []
 
     def travel(self):
@@ -761,7 +762,8 @@ class _FakePalm:
 
     def palm_force(self):
         depth = max(0.0, self.travel() - self.palm_gap_mm)
-        return -0.2 * float(np.expm1(0.9 * depth)) * self.palm_direction
+        f = 0.2 * float(np.expm1(0.9 * depth)) + self.wall * max(0.0, depth - 1.0) ** 2
+        return -f * self.palm_direction
 
     def say(self, msg):
         self.log.append(msg)
@@ -834,10 +836,15 @@ def test_the_palm_press_moves_the_object_to_the_palms_force():
     assert fake.palm_press["force_N"] == pytest.approx(f)
     assert fake.palm_press["direction"] == pytest.approx([0.0, 0.6, -0.8])
     assert "stalled" not in fake.palm_press
-    # the steps past the first are secant steps of at most palm_step_mm (redone ones smaller)
-    accepted = np.diff([0.0] + fake.moves)
-    assert np.all(np.abs(accepted[1:]) <= 0.5 + 1e-12)
+    # every move tried past the first is a secant step of at most palm_step_mm
+    tried = np.diff([0.0] + fake.moves)
+    assert np.all(np.abs(tried[1:]) <= 0.5 + 1e-12)
     assert fake.steps[-1]["palm_force_N"] == pytest.approx(f)
+    # a pad that stiffens abruptly: the step past the band is redone smaller, into it
+    stiff = _FakePalm(gap_mm=2.0, wall_N_per_mm2=1000.0)
+    GraspFE._press_palm(stiff)
+    assert any("overshoots 20 N: step redone smaller" in m for m in stiff.log)
+    assert 16.0 <= np.linalg.norm(stiff.palm_force()) <= 24.0
 
 
 def test_the_palm_press_stops_where_a_step_fails_and_at_its_travel():
