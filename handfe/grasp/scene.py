@@ -1669,8 +1669,8 @@ class GraspFE:
         self.say(f"palm: the object moves along the digits' push (start gap to the palm "
                  f"{self.palm_gap_mm:.2f} mm) until the palm carries {target:g} N (the digits "
                  f"at {s.digit_force_N:g} N each would push with ~{push_N:.1f} N). "
-                 "Experimental: on the coarse cylinder the thumb, ring and little finger then "
-                 "stayed short of their force (docs/grasp.md, forty-seventh session)")
+                 "Experimental: on the coarse cylinder three of the five digits then stayed "
+                 "short of their force (docs/grasp.md, forty-seventh session)")
         while f < f_stop and travel < s.palm_travel_mm - 1e-9:
             k += 1
             self._scale_loose({"palm": f})
