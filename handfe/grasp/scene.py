@@ -396,16 +396,13 @@ def run_workflow(workflow: Workflow | str | Path, *, mesh: str | None = None,
     mode = loading or wf.loading
     # the workflow as run: everything downstream (the FE scene too) reads this one
     wf = replace(wf, mesh=level, loading=mode)
-    dropped = muscles_only_settings(wf) if mode != "muscles" else []
+    # settings of the other mode, which this one would drop without a word
+    other = "angles" if mode == "muscles" else "muscles"
+    dropped = angles_only_settings(wf) if other == "angles" else muscles_only_settings(wf)
     if dropped:
         raise ConfigError(f"{wf.source or '<workflow>'}: loading = {mode!r} does not use "
-                          f"{', '.join(dropped)} (the muscles mode's); drop them or run the "
-                          "muscles mode")
-    dropped = angles_only_settings(wf) if mode == "muscles" else []
-    if dropped:
-        raise ConfigError(f"{wf.source or '<workflow>'}: loading = {mode!r} does not use "
-                          f"{', '.join(dropped)} (the angles mode's); drop them or run the "
-                          "angles mode")
+                          f"{', '.join(dropped)} (the {other} mode's); drop them or run the "
+                          f"{other} mode")
     if callable(progress):
         say = progress
     elif progress:
@@ -1450,33 +1447,29 @@ class GraspFE:
         """Owned displacement dofs (per component) of each participating digit's outer skin."""
         return {d: self._region_dofs(d) for d in self.grasp.digits}
 
-    def _contact_force_sums(self) -> tuple[np.ndarray, np.ndarray]:
-        """Contact force (N) the skin exerts on the object: (net vector, one vector per
-        participating digit), summed over ranks."""
+    def _contact_sums(self, groups: list[list[np.ndarray]]) -> np.ndarray:
+        """Contact residual summed per component over each group of owned dofs (one (x, y, z)
+        row per group, N), over ranks: one assembly for all groups."""
         from dolfinx.fem import petsc as fem_petsc
         from petsc4py import PETSc
 
         Rc = fem_petsc.assemble_vector(self.solver.L[1])
         Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
         r = Rc.getArray()
-        dd = self._digit_dofs()
-        local = np.array([[r[x].sum() for x in dd[d]] for d in self.grasp.digits]
-                         + [[r[x].sum() for x in self.bc.all_comp_dofs]])
+        local = np.array([[r[x].sum() for x in g] for g in groups])
         Rc.destroy()
-        tot = np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
+        return np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
+
+    def _contact_force_sums(self) -> tuple[np.ndarray, np.ndarray]:
+        """Contact force (N) the skin exerts on the object: (net vector, one vector per
+        participating digit), summed over ranks."""
+        dd = self._digit_dofs()
+        tot = self._contact_sums([dd[d] for d in self.grasp.digits] + [self.bc.all_comp_dofs])
         return tot[-1], tot[:-1]
 
     def palm_force(self) -> np.ndarray:
         """Contact force (N, vector) the palm's skin exerts on the object, summed over ranks."""
-        from dolfinx.fem import petsc as fem_petsc
-        from petsc4py import PETSc
-
-        Rc = fem_petsc.assemble_vector(self.solver.L[1])
-        Rc.ghostUpdate(addv=PETSc.InsertMode.ADD, mode=PETSc.ScatterMode.REVERSE)
-        r = Rc.getArray()
-        local = np.array([r[x].sum() for x in self._region_dofs("palm")])
-        Rc.destroy()
-        return np.array(self.problem.comm.allreduce(local, op=MPI.SUM))
+        return self._contact_sums([self._region_dofs("palm")])[0]
 
     def digit_forces(self) -> dict[str, float]:
         """Magnitude of the contact force (N) each participating digit exerts on the object."""
